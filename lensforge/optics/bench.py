@@ -1,0 +1,276 @@
+"""The measurement bench: laser, lens placement, Shack-Hartmann sensor, noise.
+
+Defaults are the paper's hardware (sources in each field's comment); values that are
+assumptions rather than sourced facts say so. A bench is a frozen dataclass and
+round-trips through TOML (``load_bench`` / ``save_bench``) with strict checking:
+unknown keys, wrong types and non-finite numbers are errors naming the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tempfile
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from ..errors import ConfigError
+
+__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "load_bench", "save_bench", "write_atomic"]
+
+
+@dataclass(frozen=True)
+class Laser:
+    """Collimated Gaussian beam travelling along +z of {S}.
+
+    Thorlabs CPS532-C2: 532 nm, collimated, ~3.5 mm beam (taken as the 1/e^2 diameter).
+    offset_mm: beam centre (x, y) in {S}; slope: beam direction (dx/dz, dy/dz).
+    """
+
+    wavelength_nm: float = 532.0
+    beam_diameter_mm: float = 3.5
+    offset_mm: tuple = (0.0, 0.0)
+    slope: tuple = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Nominal lens placement: {O} at z = -distance_mm in {S}, axes parallel.
+
+    distance_mm = 20 is an ASSUMPTION (the paper does not give it): close enough that
+    the f = 50 mm reference lens still fills the default pupil.
+    """
+
+    distance_mm: float = 20.0
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Shack-Hartmann sensor (Thorlabs WFS40-7AR) and its Zernike pupil.
+
+    pitch_mm: lenslet pitch, 150 um (Thorlabs spec); aperture_mm: 11.26 mm square
+    (Thorlabs spec); pupil_radius_mm / pupil_center_mm: the fixed circular Zernike
+    pupil in {S} (0.9 mm and on-axis are ASSUMPTIONS sized to the 3.5 mm beam);
+    zernike_order: highest radial order fitted (4 -> 14 modes without piston; the
+    instrument offers up to 10); irradiance_threshold: a lenslet is valid when its
+    irradiance is at least this fraction of the input beam's peak (exp(-2), the
+    1/e^2 level; ASSUMPTION).
+    """
+
+    pitch_mm: float = 0.150
+    aperture_mm: float = 11.26
+    pupil_radius_mm: float = 0.9
+    pupil_center_mm: tuple = (0.0, 0.0)
+    zernike_order: int = 4
+    irradiance_threshold: float = math.exp(-2.0)
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Sensor noise: independent Gaussian noise on each lenslet slope (x and y).
+
+    slope_sigma_urad: 1-sigma slope noise per lenslet and axis. ASSUMPTION: 0.6 urad
+    makes the RMS wavefront noise of the default 14-mode fit over the default pupil
+    about lambda/1000 at 532 nm (0.5 nm), an averaged measurement; Thorlabs quotes a
+    wavefront sensitivity of lambda/100 for a single frame (WFS40 spec sheet).
+    """
+
+    slope_sigma_urad: float = 0.6
+
+
+@dataclass(frozen=True)
+class PoseLimits:
+    """Valid range of the lens pose relative to its nominal placement.
+
+    translation_mm / rotation_rad: max |component|; larger poses are rejected.
+    ASSUMPTION: +-5 mm and +-10 deg cover gripper and robot errors by a wide margin.
+    """
+
+    translation_mm: float = 5.0
+    rotation_rad: float = math.radians(10.0)
+
+
+@dataclass(frozen=True)
+class Bench:
+    """Everything the forward model needs besides the lens.
+
+    fd_steps: central-difference steps per DOF for S (mm, mm, mm, rad, rad, rad);
+    pose_scales: expected pose uncertainty per DOF used to scale S for metrics
+    (1 mm and 1 deg by default, DESIGN.md); rank_rtol: singular values below
+    rank_rtol * sigma_max of the scaled, whitened S count as lost rank.
+    """
+
+    laser: Laser = field(default_factory=Laser)
+    placement: Placement = field(default_factory=Placement)
+    sensor: Sensor = field(default_factory=Sensor)
+    noise: Noise = field(default_factory=Noise)
+    pose_limits: PoseLimits = field(default_factory=PoseLimits)
+    fd_steps: tuple = (1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4)
+    pose_scales: tuple = (1.0, 1.0, 1.0, math.radians(1.0), math.radians(1.0), math.radians(1.0))
+    rank_rtol: float = 1e-7
+
+    def __post_init__(self):
+        _validate(self)
+
+    @classmethod
+    def default(cls) -> "Bench":
+        """The built-in default bench (paper hardware, documented assumptions)."""
+        return cls()
+
+    def to_dict(self) -> dict:
+        return _to_plain(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "bench") -> "Bench":
+        return _from_dict(cls, d, where)
+
+    def replace(self, **changes) -> "Bench":
+        """Copy with changes; sub-tables by dict, e.g. replace(sensor={'zernike_order': 6})."""
+        kw = {}
+        for k, v in changes.items():
+            cur = getattr(self, k)
+            if dataclasses.is_dataclass(cur) and isinstance(v, dict):
+                v = dataclasses.replace(cur, **v)
+            kw[k] = v
+        return dataclasses.replace(self, **kw)
+
+
+# --- validation -----------------------------------------------------------------
+
+_POSITIVE = {
+    "laser.wavelength_nm", "laser.beam_diameter_mm", "placement.distance_mm", "sensor.pitch_mm",
+    "sensor.aperture_mm", "sensor.pupil_radius_mm", "sensor.zernike_order", "pose_limits.translation_mm",
+    "pose_limits.rotation_rad", "rank_rtol", "fd_steps", "pose_scales",
+}
+_NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold"}
+_LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
+
+
+def _check_number(name: str, v, integer: bool = False):
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{name}: expected a number, got {type(v).__name__} {v!r}")
+    if integer and float(v) != int(v):
+        raise ConfigError(f"{name}: expected an integer, got {v!r}")
+    if not math.isfinite(float(v)):
+        raise ConfigError(f"{name}: must be finite, got {v!r}")
+
+
+def _validate(obj, prefix: str = "") -> None:
+    for f in fields(obj):
+        name = prefix + f.name
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            _validate(v, name + ".")
+            continue
+        if f.name in _LENGTHS:
+            if not isinstance(v, (tuple, list)) or len(v) != _LENGTHS[f.name]:
+                raise ConfigError(f"{name}: expected a list of {_LENGTHS[f.name]} numbers, got {v!r}")
+            for i, e in enumerate(v):
+                _check_number(f"{name}[{i}]", e)
+            vals = list(map(float, v))
+        else:
+            _check_number(name, v, integer=(f.name == "zernike_order"))
+            vals = [float(v)]
+        if name in _POSITIVE and min(vals) <= 0:
+            raise ConfigError(f"{name}: must be > 0, got {v!r}")
+        if name in _NONNEG and min(vals) < 0:
+            raise ConfigError(f"{name}: must be >= 0, got {v!r}")
+    if isinstance(obj, Sensor):
+        if not 1 <= obj.zernike_order <= 10:
+            raise ConfigError(f"sensor.zernike_order: must be 1..10 (the WFS40 reports up to order 10), got {obj.zernike_order}")
+        reach = math.hypot(*obj.pupil_center_mm) + obj.pupil_radius_mm
+        if max(abs(obj.pupil_center_mm[0]), abs(obj.pupil_center_mm[1])) + obj.pupil_radius_mm > obj.aperture_mm / 2:
+            raise ConfigError(
+                f"sensor.pupil_radius_mm: the pupil (centre {obj.pupil_center_mm}, radius {obj.pupil_radius_mm}) "
+                f"does not fit the {obj.aperture_mm} mm sensor; shrink or re-centre it"
+            )
+        n_modes = (obj.zernike_order + 1) * (obj.zernike_order + 2) // 2 - 1
+        n_lenslets = math.pi * obj.pupil_radius_mm**2 / obj.pitch_mm**2
+        if 2 * n_lenslets < 2 * n_modes:
+            raise ConfigError(
+                f"sensor.pupil_radius_mm: ~{n_lenslets:.0f} lenslets cannot determine {n_modes} Zernike modes; "
+                "enlarge the pupil or lower zernike_order"
+            )
+        if obj.irradiance_threshold >= 1:
+            raise ConfigError(f"sensor.irradiance_threshold: must be < 1 (fraction of beam peak), got {obj.irradiance_threshold}")
+        del reach
+
+
+def _to_plain(obj):
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _to_plain(getattr(obj, f.name)) for f in fields(obj)}
+    if isinstance(obj, tuple):
+        return [_to_plain(v) for v in obj]
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    return obj
+
+
+def _from_dict(cls, d, where):
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where}: expected a table, got {type(d).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(known)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(known)}")
+    kw = {}
+    defaults = cls()  if cls is not Bench else None
+    for name, value in d.items():
+        f = known[name]
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(sub):
+            kw[name] = _from_dict(type(sub), value, f"{where}.{name}")
+        elif isinstance(value, list):
+            kw[name] = tuple(value)
+        else:
+            kw[name] = value
+    del defaults
+    try:
+        return cls(**kw)
+    except ConfigError as e:
+        msg = str(e)
+        raise ConfigError(msg if msg.startswith(where) else f"{where}.{msg}") from None
+
+
+def load_bench(path) -> Bench:
+    """Read a bench TOML file; missing keys take the defaults."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            d = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"bench file {path}: not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"bench file {path}: not valid TOML ({e})") from None
+    d.pop("schema_version", None)
+    return Bench.from_dict(d, "bench")
+
+
+def write_atomic(path, data: bytes | str) -> Path:
+    """Write a file atomically: temp file in the same folder, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(data, str):
+        data = data.encode()
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def save_bench(bench: Bench, path) -> Path:
+    """Write the bench as TOML (atomically)."""
+    return write_atomic(path, tomli_w.dumps(bench.to_dict()))

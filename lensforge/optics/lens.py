@@ -1,0 +1,220 @@
+"""A lens: two sag surfaces, centre thickness, clear aperture, material.
+
+Lens frame {O} (DESIGN.md): origin on the axis halfway between the vertices, +z from
+the front (first-hit) surface to the back surface; front vertex at z = -l/2, back
+vertex at z = +l/2. Surface sags are added to their vertex planes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import cached_property
+
+import numpy as np
+
+from ..errors import ConfigError, LensGeometryError
+from .materials import Material, load_material
+from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
+
+__all__ = ["Lens", "paper_lens", "PAPER_LENSES"]
+
+
+def _polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
+    r = radius * np.sqrt(np.linspace(0.0, 1.0, n_r))
+    phi = np.linspace(0.0, 2 * np.pi, n_phi, endpoint=False)
+    rr, pp = np.meshgrid(r, phi, indexing="ij")
+    return rr * np.cos(pp), rr * np.sin(pp)
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A singlet lens.
+
+    front, back: surfaces (sag along +z of their vertex frames); thickness: centre
+    thickness l (mm); aperture: clear-aperture diameter (mm); material: name of a
+    file in ``materials/`` (or a Material); index_offset: added to the material
+    index (as-built lenses); edge_diameter: mechanical diameter of the cylindrical
+    edge (mm, default = aperture); name: free text.
+    """
+
+    front: Surface
+    back: Surface
+    thickness: float
+    aperture: float = 25.4
+    material: str = "N-BK7"
+    index_offset: float = 0.0
+    edge_diameter: float | None = None
+    name: str = ""
+
+    def __post_init__(self):
+        for f in ("thickness", "aperture", "index_offset"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating)) or not np.isfinite(v):
+                raise ConfigError(f"lens.{f}: must be a finite number, got {v!r}")
+            object.__setattr__(self, f, float(v))
+        if self.edge_diameter is None:
+            object.__setattr__(self, "edge_diameter", self.aperture)
+        if not isinstance(self.front, Surface) or not isinstance(self.back, Surface):
+            raise ConfigError("lens.front/back: must be Surface objects (see lensforge.optics.surfaces)")
+
+    # --- optics -------------------------------------------------------------
+    @cached_property
+    def _material(self) -> Material:
+        return self.material if isinstance(self.material, Material) else load_material(self.material)
+
+    def index(self, wavelength_nm: float) -> float:
+        """Refractive index at the wavelength (nm), including index_offset."""
+        return self._material.index(wavelength_nm) + self.index_offset
+
+    @property
+    def material_data(self) -> Material:
+        return self._material
+
+    # --- geometry -----------------------------------------------------------
+    def thickness_at(self, x, y):
+        """Axial glass thickness (mm) at lens-frame (x, y) in mm."""
+        return self.thickness + self.back.sag(x, y) - self.front.sag(x, y)
+
+    @property
+    def edge_thickness(self) -> float:
+        """Minimum axial thickness on the rim of the edge diameter (mm)."""
+        phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+        r = 0.5 * self.edge_diameter
+        return float(np.min(self.thickness_at(r * np.cos(phi), r * np.sin(phi))))
+
+    @property
+    def min_thickness(self) -> float:
+        """Minimum axial thickness over the whole edge diameter (mm)."""
+        x, y = _polar_grid(0.5 * self.edge_diameter)
+        return float(np.nanmin(self.thickness_at(x, y)))
+
+    def validate(self) -> "Lens":
+        """Raise LensGeometryError unless the lens is a physical solid; returns self."""
+        if self.thickness <= 0:
+            raise LensGeometryError(f"lens.thickness: centre thickness must be > 0 mm, got {self.thickness}")
+        if self.aperture <= 0:
+            raise LensGeometryError(f"lens.aperture: clear aperture must be > 0 mm, got {self.aperture}")
+        if self.edge_diameter < self.aperture:
+            raise LensGeometryError(
+                f"lens.edge_diameter: {self.edge_diameter} mm is smaller than the clear aperture {self.aperture} mm"
+            )
+        x, y = _polar_grid(0.5 * self.edge_diameter)
+        for side in ("front", "back"):
+            if np.any(~np.isfinite(getattr(self, side).sag(x, y))):
+                raise LensGeometryError(
+                    f"lens.{side}: the conic is undefined inside the {self.edge_diameter} mm diameter "
+                    "(|curvature| too large for the aperture); reduce curvature or aperture"
+                )
+        t = self.thickness_at(x, y)
+        if self.edge_thickness <= 0:
+            raise LensGeometryError(
+                f"lens: edge thickness {self.edge_thickness:.4g} mm <= 0; increase thickness or reduce curvature/aperture"
+            )
+        if np.min(t) <= 0:
+            raise LensGeometryError(
+                f"lens: surfaces cross inside the aperture (min thickness {np.min(t):.4g} mm); increase thickness"
+            )
+        n = self.index(532.0)
+        if not (1.0 < n < 4.0):
+            raise LensGeometryError(f"lens.index_offset: index {n:.4g} is not physical (must be in (1, 4))")
+        return self
+
+    def is_rotationally_symmetric(self) -> bool:
+        return self.front.is_rotationally_symmetric() and self.back.is_rotationally_symmetric()
+
+    # --- I/O ----------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "front": self.front.to_dict(),
+            "back": self.back.to_dict(),
+            "thickness": self.thickness,
+            "aperture": self.aperture,
+            "edge_diameter": self.edge_diameter,
+            "material": self.material if isinstance(self.material, str) else self.material.name,
+            "index_offset": self.index_offset,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "lens") -> "Lens":
+        if not isinstance(d, dict):
+            raise ConfigError(f"{where}: expected a table/dict")
+        d = dict(d)
+        allowed = {"name", "front", "back", "thickness", "aperture", "edge_diameter", "material", "index_offset"}
+        unknown = set(d) - allowed
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
+        for req in ("front", "back", "thickness"):
+            if req not in d:
+                raise ConfigError(f"{where}.{req}: missing")
+        d["front"] = surface_from_dict(d["front"], f"{where}.front")
+        d["back"] = surface_from_dict(d["back"], f"{where}.back")
+        return cls(**d)
+
+    def replace(self, **changes) -> "Lens":
+        return replace(self, **changes)
+
+
+# ---------------------------------------------------------------------------
+# The paper's lenses (Optics Express 30(9) 14368, 2022, Eqs. 11, 15, 17 and Table 1).
+#
+# What the paper leaves out, and what lensforge ASSUMES (all marked here):
+#  * aperture: 25.4 mm (1 inch) clear aperture for all four lenses, the standard
+#    size of the spherical reference lens and of 1" gripper/holder hardware.
+#  * material of the freeform lenses: Formlabs Clear resin (they were printed on a
+#    Form 2); index from materials/Formlabs-Clear.toml (n = 1.5145 at 532 nm).
+#  * extended polynomial: normalisation radius R_n = 1 mm (so the coefficients act in
+#    mm, the same units as the paper's unnormalised polynomial model); no base curvature.
+#  * Zernike standard sag: the paper gives only Noll terms 1..3 (piston, x tilt, y
+#    tilt) per surface, which on their own form a plane wedge; a plane wedge has no
+#    optical power, so its wavefront cannot depend on translation at all. lensforge
+#    therefore assumes the base sphere of the spherical reference lens (front radius
+#    +25.8 mm, back plano) and a normalisation radius R_n = 12.7 mm (the semi-aperture,
+#    the usual choice in Zemax). Piston terms only shift the vertex and are kept as given.
+#  * polynomial: no base curvature (the x^2, y^2 terms carry the power), as in Eq. 9-10.
+# ---------------------------------------------------------------------------
+
+PAPER_LENSES = {
+    # Thorlabs LA1131-A: N-BK7 plano-convex, f = 50.0 mm, R = 25.8 mm, tc = 5.3 mm,
+    # diameter 25.4 mm (Thorlabs catalogue). Convex side faces the collimated beam.
+    "spherical": dict(
+        front=Conic(curvature=1 / 25.8),
+        back=Conic(),
+        thickness=5.3,
+        aperture=25.4,
+        material="N-BK7",
+        name="spherical (Thorlabs LA1131-A, f = 50 mm plano-convex, N-BK7)",
+    ),
+    "polynomial": dict(
+        front=Polynomial(zeta=(0.0, -3.42e-2, 0.0, -4.24e-6), gamma=(0.0, 1.96e-2, 0.0, -7.64e-7)),
+        back=Polynomial(zeta=(0.0, -4.16e-2, 0.0, -9.15e-7), gamma=(0.0, 1.24e-2, 0.0, -7.45e-7)),
+        thickness=6.07,
+        aperture=25.4,
+        material="Formlabs-Clear",
+        name="polynomial (paper Eq. 11)",
+    ),
+    "extended_polynomial": dict(
+        front=ExtendedPolynomial(coefficients=(2.94e-3, 6.43e-2, 7.73e-4, 3.54e-3, -7.13e-3), norm_radius=1.0),
+        back=ExtendedPolynomial(coefficients=(-9.27e-3, 9.81e-2, -1.20e-2, 1.19e-2, -1.20e-2), norm_radius=1.0),
+        thickness=5.06,
+        aperture=25.4,
+        material="Formlabs-Clear",
+        name="extended polynomial (paper Eq. 15)",
+    ),
+    "zernike": dict(
+        front=ZernikeSag(curvature=1 / 25.8, coefficients=(1.95e-2, 4.95e-2, -1.24e-5), norm_radius=12.7),
+        back=ZernikeSag(coefficients=(-4.99e-2, 1.57e-2, 1.59e-5), norm_radius=12.7),
+        thickness=6.94,
+        aperture=25.4,
+        material="Formlabs-Clear",
+        name="Zernike standard sag (paper Eq. 17)",
+    ),
+}
+
+
+def paper_lens(name: str) -> Lens:
+    """One of the paper's lenses: 'spherical', 'polynomial', 'extended_polynomial', 'zernike'."""
+    key = str(name).lower().replace("-", "_")
+    if key not in PAPER_LENSES:
+        raise ConfigError(f"lens name: unknown paper lens {name!r}; use one of {sorted(PAPER_LENSES)}")
+    return Lens(**PAPER_LENSES[key]).validate()

@@ -1,0 +1,359 @@
+"""Exact real-ray trace of a posed lens, vectorised over rays and poses (numba).
+
+Rays start on a plane before the lens, in the sensor frame {S}, travel along the
+beam direction, refract at the front and back sag surfaces (Newton intersection on
+the canonical surface form, vector Snell's law) and are propagated to the lenslet
+plane z = 0 of {S}. Each ray carries a status code:
+
+    OK, MISSED (no intersection / conic undefined / Newton failed), TIR,
+    CLIPPED (outside the clear aperture), BACKWARD (does not reach the sensor),
+    NOT_AIMED (ray aiming did not converge)
+
+The lens frame {O} is posed by T_SO = T_SO(nominal) [R(r), t]; nominal places {O}
+at z = -d in {S} with parallel axes (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .bench import Bench
+from .lens import Lens
+from .pose import rotations
+
+__all__ = [
+    "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
+    "LensKernel", "lens_kernel", "pose_frames", "trace_rays", "aim_rays", "TraceResult",
+]
+
+OK, MISSED, TIR, CLIPPED, BACKWARD, NOT_AIMED = 0, 1, 2, 3, 4, 5
+STATUS_NAMES = {OK: "ok", MISSED: "missed surface", TIR: "total internal reflection",
+                CLIPPED: "clipped by clear aperture", BACKWARD: "does not reach sensor",
+                NOT_AIMED: "ray aiming failed"}
+
+_NEWTON_MAXIT = 40
+_NEWTON_TOL = 1e-13  # mm
+
+
+@dataclass(frozen=True)
+class LensKernel:
+    """A lens packed into arrays for the numba kernels (both surfaces share one degree)."""
+
+    c: np.ndarray        # (2,) curvature 1/mm
+    k: np.ndarray        # (2,) conic
+    alpha: np.ndarray    # (2, 8)
+    poly: np.ndarray     # (2, D+1, D+1)
+    zv: np.ndarray       # (2,) vertex z in {O}: -l/2, +l/2
+    ap_r: float          # clear-aperture radius, mm
+    n: float             # glass index at the bench wavelength
+
+
+def lens_kernel(lens: Lens, wavelength_nm: float) -> LensKernel:
+    """Pack a lens for the kernels at the given wavelength."""
+    cf, cb = lens.front.canonical(), lens.back.canonical()
+    d = max(cf.poly.shape[0], cb.poly.shape[0])
+    poly = np.zeros((2, d, d))
+    poly[0, : cf.poly.shape[0], : cf.poly.shape[1]] = cf.poly
+    poly[1, : cb.poly.shape[0], : cb.poly.shape[1]] = cb.poly
+    return LensKernel(
+        c=np.array([cf.c, cb.c]), k=np.array([cf.k, cb.k]),
+        alpha=np.stack([cf.alpha, cb.alpha]), poly=poly,
+        zv=np.array([-0.5 * lens.thickness, 0.5 * lens.thickness]),
+        ap_r=0.5 * lens.aperture, n=lens.index(wavelength_nm),
+    )
+
+
+def pose_frames(bench: Bench, poses) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of T_SO for pose vectors (P, 6): p_S = R p_O + t."""
+    poses = np.atleast_2d(np.asarray(poses, dtype=float))
+    R = np.ascontiguousarray(rotations(poses[:, 3:]))
+    t = poses[:, :3].copy()
+    t[:, 2] -= bench.placement.distance_mm
+    return R, t
+
+
+# ----------------------------------------------------------------------------- kernels
+
+@nb.njit(cache=True, fastmath=False, inline="always")
+def _sag(c, k, alpha, poly, s, x, y):
+    """(z, dz/dx, dz/dy, ok) of surface s at (x, y)."""
+    r2 = x * x + y * y
+    cs = c[s]
+    arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
+    if arg <= 0.0:
+        return 0.0, 0.0, 0.0, False
+    root = math.sqrt(arg)
+    z = cs * r2 / (1.0 + root)
+    dr = cs / root  # dz/dx = x * dr
+    za = 0.0
+    da = 0.0
+    for i in range(alpha.shape[1], 0, -1):
+        a = alpha[s, i - 1]
+        da = da * r2 + 2.0 * i * a
+        za = (za + a) * r2
+    z += za
+    dr += da
+    gx = x * dr
+    gy = y * dr
+    d1 = poly.shape[1]
+    pz = 0.0
+    px = 0.0
+    py = 0.0
+    for p in range(d1 - 1, -1, -1):
+        r = 0.0
+        ry = 0.0
+        for q in range(d1 - 1 - p, -1, -1):
+            ry = ry * y + r
+            r = r * y + poly[s, p, q]
+        px = px * x + pz
+        pz = pz * x + r
+        py = py * x + ry
+    return z + pz, gx + px, gy + py, True
+
+
+@nb.njit(cache=True, inline="always")
+def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass):
+    """Trace one ray (lens frame) through both surfaces. Returns exit ray and status."""
+    n_in = 1.0
+    for s in range(2):
+        n_out = n_glass if s == 0 else 1.0
+        if dz <= 0.0:
+            return ox, oy, oz, dx, dy, dz, 4
+        t = (zv[s] - oz) / dz
+        ok = False
+        gx = 0.0
+        gy = 0.0
+        for _ in range(40):
+            x = ox + t * dx
+            y = oy + t * dy
+            z, gx, gy, good = _sag(c, k, alpha, poly, s, x, y)
+            if not good:
+                break
+            f = oz + t * dz - zv[s] - z
+            fp = dz - gx * dx - gy * dy
+            if fp == 0.0:
+                break
+            step = f / fp
+            t -= step
+            if abs(step) < 1e-13:
+                ok = True
+                break
+        if not ok:
+            return ox, oy, oz, dx, dy, dz, 1
+        x = ox + t * dx
+        y = oy + t * dy
+        z, gx, gy, good = _sag(c, k, alpha, poly, s, x, y)
+        if not good:
+            return ox, oy, oz, dx, dy, dz, 1
+        if x * x + y * y > ap_r * ap_r:
+            return ox, oy, oz, dx, dy, dz, 3
+        ox = x
+        oy = y
+        oz = zv[s] + z
+        # unit normal along +z side
+        inv = 1.0 / math.sqrt(gx * gx + gy * gy + 1.0)
+        nx = -gx * inv
+        ny = -gy * inv
+        nz = inv
+        mu = n_in / n_out
+        ci = nx * dx + ny * dy + nz * dz
+        kk = 1.0 - mu * mu * (1.0 - ci * ci)
+        if kk < 0.0:
+            return ox, oy, oz, dx, dy, dz, 2
+        g = math.sqrt(kk) - mu * ci
+        dx = mu * dx + g * nx
+        dy = mu * dy + g * ny
+        dz = mu * dz + g * nz
+        n_in = n_out
+    return ox, oy, oz, dx, dy, dz, 0
+
+
+@nb.njit(cache=True, inline="always")
+def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass):
+    """Trace the beam ray with transverse coordinates (u, v) for one pose.
+
+    Returns sensor-plane x, y, direction L, M, N (in {S}) and status.
+    """
+    # ray in {S}
+    inv = 1.0 / math.sqrt(1.0 + bsx * bsx + bsy * bsy)
+    dSx = bsx * inv
+    dSy = bsy * inv
+    dSz = inv
+    pSx = bx + u
+    pSy = by + v
+    pSz = z0
+    # to {O}: p_O = R^T (p_S - t)
+    qx = pSx - t[0]
+    qy = pSy - t[1]
+    qz = pSz - t[2]
+    ox = R[0, 0] * qx + R[1, 0] * qy + R[2, 0] * qz
+    oy = R[0, 1] * qx + R[1, 1] * qy + R[2, 1] * qz
+    oz = R[0, 2] * qx + R[1, 2] * qy + R[2, 2] * qz
+    dx = R[0, 0] * dSx + R[1, 0] * dSy + R[2, 0] * dSz
+    dy = R[0, 1] * dSx + R[1, 1] * dSy + R[2, 1] * dSz
+    dz = R[0, 2] * dSx + R[1, 2] * dSy + R[2, 2] * dSz
+    ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass)
+    if st != 0:
+        return 0.0, 0.0, 0.0, 0.0, 1.0, st
+    # back to {S}
+    px = R[0, 0] * ox + R[0, 1] * oy + R[0, 2] * oz + t[0]
+    py = R[1, 0] * ox + R[1, 1] * oy + R[1, 2] * oz + t[1]
+    pz = R[2, 0] * ox + R[2, 1] * oy + R[2, 2] * oz + t[2]
+    L = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
+    M = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
+    N = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+    if N <= 0.0 or pz > 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 1.0, 4
+    s = -pz / N
+    return px + s * L, py + s * M, L, M, N, 0
+
+
+@nb.njit(cache=True, parallel=True)
+def _trace_grid(uv, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass, out, status):
+    n_p = Rs.shape[0]
+    n_r = uv.shape[0]
+    for idx in nb.prange(n_p * n_r):
+        p = idx // n_r
+        i = idx - p * n_r
+        x, y, L, M, N, st = _trace_one(uv[i, 0], uv[i, 1], Rs[p], ts[p], z0, bx, by, bsx, bsy,
+                                       c, k, alpha, poly, zv, ap_r, n_glass)
+        out[p, i, 0] = x
+        out[p, i, 1] = y
+        out[p, i, 2] = L
+        out[p, i, 3] = M
+        out[p, i, 4] = N
+        status[p, i] = st
+
+
+@nb.njit(cache=True, parallel=True)
+def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass,
+         eps, tol, maxit, out, status, counts):
+    """Newton ray aiming: find beam coordinates (u, v) whose ray lands on each target.
+
+    out[p, i] = (u, v, L/N, M/N, |det d(X,Y)/d(u,v)|); counts[p, i] = rays traced.
+    """
+    n_p = Rs.shape[0]
+    n_t = targets.shape[0]
+    for idx in nb.prange(n_p * n_t):
+        p = idx // n_t
+        i = idx - p * n_t
+        u = u0[p, i, 0]
+        v = u0[p, i, 1]
+        X = targets[i, 0]
+        Y = targets[i, 1]
+        st = 5
+        traced = 0
+        sx = 0.0
+        sy = 0.0
+        det = 0.0
+        for it in range(maxit):
+            x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass)
+            xu, yu, _, _, _, s1 = _trace_one(u + eps, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass)
+            xv, yv, _, _, _, s2 = _trace_one(u, v + eps, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass)
+            traced += 3
+            if s0 != 0:
+                st = s0
+                break
+            if s1 != 0 or s2 != 0:
+                st = s1 if s1 != 0 else s2
+                break
+            j11 = (xu - x) / eps
+            j21 = (yu - y) / eps
+            j12 = (xv - x) / eps
+            j22 = (yv - y) / eps
+            det = j11 * j22 - j12 * j21
+            rx = x - X
+            ry = y - Y
+            sx = L / N
+            sy = M / N
+            if abs(rx) < tol and abs(ry) < tol:
+                st = 0
+                break
+            if det == 0.0:
+                st = 5
+                break
+            u -= (j22 * rx - j12 * ry) / det
+            v -= (-j21 * rx + j11 * ry) / det
+        out[p, i, 0] = u
+        out[p, i, 1] = v
+        out[p, i, 2] = sx
+        out[p, i, 3] = sy
+        out[p, i, 4] = abs(det)
+        status[p, i] = st
+        counts[p, i] = traced
+
+
+# ----------------------------------------------------------------------------- Python API
+
+@dataclass(frozen=True)
+class TraceResult:
+    """Rays at the sensor plane for P poses and N rays.
+
+    xy: (P, N, 2) positions in {S} (mm); direction: (P, N, 3) unit vectors (L, M, N);
+    status: (P, N) codes (0 = OK).
+    """
+
+    xy: np.ndarray
+    direction: np.ndarray
+    status: np.ndarray
+
+    @property
+    def slopes(self) -> np.ndarray:
+        """(P, N, 2) ray slopes (L/N, M/N), dimensionless."""
+        return self.direction[..., :2] / self.direction[..., 2:3]
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == OK
+
+
+def _beam_args(bench: Bench, lens: Lens):
+    las = bench.laser
+    # start plane: safely before the lens at any valid pose
+    z0 = -bench.placement.distance_mm - lens.thickness - lens.edge_diameter - bench.pose_limits.translation_mm - 10.0
+    return z0, float(las.offset_mm[0]), float(las.offset_mm[1]), float(las.slope[0]), float(las.slope[1])
+
+
+def _kernel_args(kern: LensKernel):
+    return kern.c, kern.k, kern.alpha, kern.poly, kern.zv, kern.ap_r, kern.n
+
+
+def trace_rays(bench: Bench, lens: Lens, poses, uv, kernel: LensKernel | None = None) -> TraceResult:
+    """Trace beam rays with transverse coordinates uv (N, 2) (mm, relative to the beam
+    centre) through the lens at each pose (P, 6) to the sensor plane.
+    """
+    kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
+    Rs, ts = pose_frames(bench, poses)
+    uv = np.ascontiguousarray(np.atleast_2d(uv), dtype=float)
+    out = np.empty((Rs.shape[0], uv.shape[0], 5))
+    status = np.empty((Rs.shape[0], uv.shape[0]), dtype=np.int8)
+    _trace_grid(uv, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), out, status)
+    return TraceResult(out[..., :2], out[..., 2:], status)
+
+
+def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKernel | None = None,
+             eps: float = 1e-6, tol: float = 1e-12, maxit: int = 30):
+    """Aim one beam ray onto each target point (lenslet centre) of the sensor plane.
+
+    Returns (uv, slopes, jac_det, status, n_traced): beam coordinates (P, T, 2) of
+    the aimed rays, their slopes (L/N, M/N) at the targets (P, T, 2), the local
+    |det d(X, Y)/d(u, v)| of the beam-to-sensor map (P, T) (irradiance at the
+    sensor = input irradiance / det), status (P, T) and the number of rays traced.
+    ``u0`` (P, T, 2) warm-starts the Newton iteration (default: the targets).
+    """
+    kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
+    Rs, ts = pose_frames(bench, poses)
+    targets = np.ascontiguousarray(targets, dtype=float)
+    n_p, n_t = Rs.shape[0], targets.shape[0]
+    if u0 is None:
+        u0 = np.broadcast_to(targets - np.asarray(bench.laser.offset_mm), (n_p, n_t, 2))
+    u0 = np.ascontiguousarray(np.broadcast_to(u0, (n_p, n_t, 2)), dtype=float)
+    out = np.empty((n_p, n_t, 5))
+    status = np.empty((n_p, n_t), dtype=np.int8)
+    counts = np.empty((n_p, n_t), dtype=np.int64)
+    _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), eps, tol, maxit, out, status, counts)
+    return out[..., :2], out[..., 2:4], out[..., 4], status, int(counts.sum())
