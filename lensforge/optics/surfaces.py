@@ -3,8 +3,13 @@
 Every surface is a dataclass with its native parameters and lowers itself to one
 *canonical form* (:class:`CanonicalSurface`)::
 
-    z(x, y) = c r^2 / (1 + sqrt(1 - (1 + k) c^2 r^2)) + sum_i alpha_i r^(2 i)
+    s(x, y) = c r^2 / (1 + sqrt(1 - (1 + k) c^2 r^2)) + sum_i alpha_i r^(2 i)
               + sum_{p, q} P[p, q] x^p y^q              (all lengths in mm)
+    z(x, y) = s + a sin(2 pi s / h)                      (optional layer ripple)
+
+The ripple term models the residual staircase of SLA layers of height h (the
+layers are planes of constant sag along the print axis) as a sinusoid of
+amplitude a; it is zero for designed surfaces.
 
 The conic part carries the rotationally symmetric base, the monomial array P
 carries every freeform term (polynomial, extended polynomial and Zernike terms
@@ -33,6 +38,7 @@ __all__ = [
     "Polynomial",
     "ExtendedPolynomial",
     "ZernikeSag",
+    "Freeform",
     "surface_from_dict",
     "extended_monomial_exponents",
     "N_ASPHERIC",
@@ -53,6 +59,8 @@ class CanonicalSurface:
     k: float
     alpha: np.ndarray
     poly: np.ndarray
+    ripple_amplitude: float = 0.0
+    ripple_period: float = 1.0
 
     def sag(self, x, y):
         """Sag z(x, y) in mm; NaN where the conic is undefined (beyond its edge)."""
@@ -94,6 +102,12 @@ class CanonicalSurface:
                 gx = gx + P.polyval2d(x, y, P.polyder(p, axis=0))
             if p.shape[1] > 1:
                 gy = gy + P.polyval2d(x, y, P.polyder(p, axis=1))
+        if self.ripple_amplitude:
+            w = 2.0 * np.pi / self.ripple_period
+            f = 1.0 + self.ripple_amplitude * w * np.cos(w * z)
+            z = z + self.ripple_amplitude * np.sin(w * z)
+            gx = gx * f
+            gy = gy * f
         return z, gx, gy
 
     @property
@@ -284,7 +298,56 @@ class ZernikeSag(Surface):
         return out * scale
 
 
-_KINDS = {cls.kind: cls for cls in (Conic, Polynomial, ExtendedPolynomial, ZernikeSag)}
+@dataclass(frozen=True)
+class Freeform(Surface):
+    """Canonical form written out: base + sum P[p][q] x^p y^q (mm) + layer ripple.
+
+    poly: nested list (D+1) x (D+1) of monomial coefficients in mm units;
+    ripple_amplitude (mm) and ripple_period (mm): residual layer staircase.
+    Used for as-built lenses and by tools that perturb a design.
+    """
+
+    kind: ClassVar[str] = "freeform"
+    poly: tuple = ((0.0,),)
+    ripple_amplitude: float = 0.0
+    ripple_period: float = 0.025
+
+    def __post_init__(self):
+        super().__post_init__()
+        arr = np.asarray(self.poly, dtype=float)
+        if arr.ndim != 2 or arr.shape[0] != arr.shape[1] or not np.all(np.isfinite(arr)):
+            raise ConfigError("freeform.poly: expected a finite square nested list of monomial coefficients")
+        object.__setattr__(self, "poly", tuple(tuple(float(v) for v in row) for row in arr))
+        a = _check_finite("freeform.ripple_amplitude", self.ripple_amplitude)
+        h = _check_finite("freeform.ripple_period", self.ripple_period)
+        if a < 0 or h <= 0:
+            raise ConfigError("freeform.ripple_amplitude must be >= 0 and ripple_period > 0 (mm)")
+        object.__setattr__(self, "ripple_amplitude", a)
+        object.__setattr__(self, "ripple_period", h)
+
+    def _poly(self) -> np.ndarray:
+        return np.array(self.poly, dtype=float)
+
+    def canonical(self) -> CanonicalSurface:
+        return CanonicalSurface(self.curvature, self.conic, self._alpha(), self._poly(),
+                                self.ripple_amplitude, self.ripple_period)
+
+    def is_rotationally_symmetric(self) -> bool:
+        return not np.any(self._poly()) and self.ripple_amplitude == 0.0
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d["poly"] = [list(r) for r in self.poly]
+        return d
+
+    @classmethod
+    def from_canonical(cls, cs: CanonicalSurface) -> "Freeform":
+        """Freeform surface holding exactly the given canonical form."""
+        return cls(curvature=cs.c, conic=cs.k, aspheric=tuple(cs.alpha), poly=np.asarray(cs.poly),
+                   ripple_amplitude=cs.ripple_amplitude, ripple_period=cs.ripple_period)
+
+
+_KINDS = {cls.kind: cls for cls in (Conic, Polynomial, ExtendedPolynomial, ZernikeSag, Freeform)}
 _KINDS["sphere"] = Conic
 
 

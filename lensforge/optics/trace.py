@@ -47,6 +47,7 @@ class LensKernel:
     k: np.ndarray        # (2,) conic
     alpha: np.ndarray    # (2, 8)
     poly: np.ndarray     # (2, D+1, D+1)
+    ripple: np.ndarray   # (2, 2) layer ripple (amplitude, period) mm
     zv: np.ndarray       # (2,) vertex z in {O}: -l/2, +l/2
     ap_r: float          # clear-aperture radius, mm
     n: float             # glass index at the bench wavelength
@@ -62,6 +63,7 @@ def lens_kernel(lens: Lens, wavelength_nm: float) -> LensKernel:
     return LensKernel(
         c=np.array([cf.c, cb.c]), k=np.array([cf.k, cb.k]),
         alpha=np.stack([cf.alpha, cb.alpha]), poly=poly,
+        ripple=np.array([[cf.ripple_amplitude, cf.ripple_period], [cb.ripple_amplitude, cb.ripple_period]]),
         zv=np.array([-0.5 * lens.thickness, 0.5 * lens.thickness]),
         ap_r=0.5 * lens.aperture, n=lens.index(wavelength_nm),
     )
@@ -79,7 +81,7 @@ def pose_frames(bench: Bench, poses) -> tuple[np.ndarray, np.ndarray]:
 # ----------------------------------------------------------------------------- kernels
 
 @nb.njit(cache=True, fastmath=False, inline="always")
-def _sag(c, k, alpha, poly, s, x, y):
+def _sag(c, k, alpha, poly, ripple, s, x, y):
     """(z, dz/dx, dz/dy, ok) of surface s at (x, y)."""
     r2 = x * x + y * y
     cs = c[s]
@@ -106,17 +108,27 @@ def _sag(c, k, alpha, poly, s, x, y):
     for p in range(d1 - 1, -1, -1):
         r = 0.0
         ry = 0.0
-        for q in range(d1 - 1 - p, -1, -1):
+        for q in range(d1 - 1, -1, -1):
             ry = ry * y + r
             r = r * y + poly[s, p, q]
         px = px * x + pz
         pz = pz * x + r
         py = py * x + ry
-    return z + pz, gx + px, gy + py, True
+    z += pz
+    gx += px
+    gy += py
+    a = ripple[s, 0]
+    if a != 0.0:
+        w = 2.0 * math.pi / ripple[s, 1]
+        f = 1.0 + a * w * math.cos(w * z)
+        z += a * math.sin(w * z)
+        gx *= f
+        gy *= f
+    return z, gx, gy, True
 
 
 @nb.njit(cache=True, inline="always")
-def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass):
+def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, ripple, zv, ap_r, n_glass):
     """Trace one ray (lens frame) through both surfaces. Returns exit ray and status."""
     n_in = 1.0
     for s in range(2):
@@ -130,7 +142,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass):
         for _ in range(40):
             x = ox + t * dx
             y = oy + t * dy
-            z, gx, gy, good = _sag(c, k, alpha, poly, s, x, y)
+            z, gx, gy, good = _sag(c, k, alpha, poly, ripple, s, x, y)
             if not good:
                 break
             f = oz + t * dz - zv[s] - z
@@ -146,7 +158,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass):
             return ox, oy, oz, dx, dy, dz, 1
         x = ox + t * dx
         y = oy + t * dy
-        z, gx, gy, good = _sag(c, k, alpha, poly, s, x, y)
+        z, gx, gy, good = _sag(c, k, alpha, poly, ripple, s, x, y)
         if not good:
             return ox, oy, oz, dx, dy, dz, 1
         if x * x + y * y > ap_r * ap_r:
@@ -173,7 +185,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass):
 
 
 @nb.njit(cache=True, inline="always")
-def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass):
+def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, poly, ripple, zv, ap_r, n_glass):
     """Trace the beam ray with transverse coordinates (u, v) for one pose.
 
     Returns sensor-plane x, y, direction L, M, N (in {S}) and status.
@@ -196,7 +208,7 @@ def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_
     dx = R[0, 0] * dSx + R[1, 0] * dSy + R[2, 0] * dSz
     dy = R[0, 1] * dSx + R[1, 1] * dSy + R[2, 1] * dSz
     dz = R[0, 2] * dSx + R[1, 2] * dSy + R[2, 2] * dSz
-    ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, zv, ap_r, n_glass)
+    ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, poly, ripple, zv, ap_r, n_glass)
     if st != 0:
         return 0.0, 0.0, 0.0, 0.0, 1.0, st
     # back to {S}
@@ -213,14 +225,14 @@ def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_
 
 
 @nb.njit(cache=True, parallel=True)
-def _trace_grid(uv, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass, out, status):
+def _trace_grid(uv, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, ripple, zv, ap_r, n_glass, out, status):
     n_p = Rs.shape[0]
     n_r = uv.shape[0]
     for idx in nb.prange(n_p * n_r):
         p = idx // n_r
         i = idx - p * n_r
         x, y, L, M, N, st = _trace_one(uv[i, 0], uv[i, 1], Rs[p], ts[p], z0, bx, by, bsx, bsy,
-                                       c, k, alpha, poly, zv, ap_r, n_glass)
+                                       c, k, alpha, poly, ripple, zv, ap_r, n_glass)
         out[p, i, 0] = x
         out[p, i, 1] = y
         out[p, i, 2] = L
@@ -230,7 +242,7 @@ def _trace_grid(uv, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n
 
 
 @nb.njit(cache=True, parallel=True)
-def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass,
+def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, ripple, zv, ap_r, n_glass,
          eps, tol, maxit, out, status, counts):
     """Newton ray aiming: find beam coordinates (u, v) whose ray lands on each target.
 
@@ -251,9 +263,9 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r,
         sy = 0.0
         det = 0.0
         for it in range(maxit):
-            x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass)
-            xu, yu, _, _, _, s1 = _trace_one(u + eps, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass)
-            xv, yv, _, _, _, s2 = _trace_one(u, v + eps, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, zv, ap_r, n_glass)
+            x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, ripple, zv, ap_r, n_glass)
+            xu, yu, _, _, _, s1 = _trace_one(u + eps, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, ripple, zv, ap_r, n_glass)
+            xv, yv, _, _, _, s2 = _trace_one(u, v + eps, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, poly, ripple, zv, ap_r, n_glass)
             traced += 3
             if s0 != 0:
                 st = s0
@@ -319,7 +331,7 @@ def _beam_args(bench: Bench, lens: Lens):
 
 
 def _kernel_args(kern: LensKernel):
-    return kern.c, kern.k, kern.alpha, kern.poly, kern.zv, kern.ap_r, kern.n
+    return kern.c, kern.k, kern.alpha, kern.poly, kern.ripple, kern.zv, kern.ap_r, kern.n
 
 
 def trace_rays(bench: Bench, lens: Lens, poses, uv, kernel: LensKernel | None = None) -> TraceResult:
