@@ -74,13 +74,14 @@ class Sensor:
 class Noise:
     """Sensor noise: independent Gaussian noise on each lenslet slope (x and y).
 
-    slope_sigma_urad: 1-sigma slope noise per lenslet and axis. ASSUMPTION: 0.6 urad
-    makes the RMS wavefront noise of the default 14-mode fit over the default pupil
-    about lambda/1000 at 532 nm (0.5 nm), an averaged measurement; Thorlabs quotes a
-    wavefront sensitivity of lambda/100 for a single frame (WFS40 spec sheet).
+    slope_sigma_urad: 1-sigma slope noise per lenslet and axis. ASSUMPTION: a spot
+    centroid precision of 1/100 pixel (WFS40: 5.5 um pixels, 2048 px over 11.26 mm)
+    behind a lenslet of focal length ~6.7 mm (MLA150-7AR; assumed) gives
+    0.055 um / 6.7 mm = 8 urad per frame. Over the default pupil this is ~0.7 nm RMS
+    of fitted wavefront, below Thorlabs' quoted sensitivity of lambda/100 (5 nm).
     """
 
-    slope_sigma_urad: float = 0.6
+    slope_sigma_urad: float = 8.0
 
 
 @dataclass(frozen=True)

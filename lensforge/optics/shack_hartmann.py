@@ -1,0 +1,228 @@
+"""Shack-Hartmann sensor model: lenslet slopes in a fixed pupil -> Zernike coefficients.
+
+The sensor samples the wavefront slope at each lenslet of a fixed circular pupil in
+{S} (centre and radius from the bench). For each lenslet centre lensforge aims one
+beam ray onto it (Newton iteration on the beam coordinates, see ``trace.aim_rays``),
+so the slope is exact at the lenslet centre and varies smoothly with the pose —
+finite differences of the model are clean. The local Jacobian of the
+beam-to-sensor map gives the irradiance at each lenslet (flux conservation):
+I = I_beam(u, v) / |det d(X, Y)/d(u, v)|; a lenslet is valid when I is at least
+``sensor.irradiance_threshold`` times the input peak. Approximation: slopes are
+sampled at lenslet centres, not averaged over the 150 um sub-aperture (error
+O(pitch^2 * third derivative of W), negligible for the fitted low orders).
+
+Zernike fit (DESIGN.md): W in um of OPD, dW/dx = L/N, dW/dy = M/N, Noll modes
+2..N of the sensor's radial order over the pupil (piston is not measurable), by
+least squares z = F s with the fit matrix F = pinv(G) computed once per pupil.
+Sensor noise: independent Gaussian slope noise sigma per lenslet and axis, so
+cov(z) = sigma^2 F F^T.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property, lru_cache
+
+import numpy as np
+
+from ..errors import PoseRangeError, PupilError, TraceError
+from .bench import Bench, Sensor
+from .lens import Lens
+from .trace import CLIPPED, MISSED, NOT_AIMED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel
+from .zernike import modes_up_to_order, zernike_gradient
+
+__all__ = ["LensletPupil", "lenslet_pupil", "ForwardModel", "ZernikeResult", "measure", "check_pose_range"]
+
+
+@dataclass(frozen=True, eq=False)
+class LensletPupil:
+    """The fixed lenslet set of the Zernike pupil and its fit matrices.
+
+    centres: (n, 2) lenslet centres in {S} (mm); modes: Noll indices fitted;
+    G: (2n, m) slopes [sx..., sy...] (rad) per um of each coefficient;
+    F: (m, 2n) least-squares fit matrix (um per rad); radius_mm, center_mm: pupil.
+    """
+
+    centres: np.ndarray
+    modes: np.ndarray
+    G: np.ndarray
+    F: np.ndarray
+    radius_mm: float
+    center_mm: tuple
+
+    @property
+    def n_lenslets(self) -> int:
+        return self.centres.shape[0]
+
+    def fit(self, slopes: np.ndarray) -> np.ndarray:
+        """Zernike coefficients (..., m) in um from slopes (..., n, 2) in rad."""
+        s = np.concatenate([slopes[..., 0], slopes[..., 1]], axis=-1)
+        return s @ self.F.T
+
+    def noise_covariance(self, slope_sigma_rad: float) -> np.ndarray:
+        """Covariance (m, m) of the fitted coefficients (um^2) for i.i.d. slope noise."""
+        return slope_sigma_rad**2 * (self.F @ self.F.T)
+
+
+@lru_cache(maxsize=64)
+def lenslet_pupil(sensor: Sensor) -> LensletPupil:
+    """Lenslets whose centres lie inside the pupil, and the Zernike fit matrix."""
+    n_side = int(np.floor(sensor.aperture_mm / sensor.pitch_mm + 1e-9))
+    coords = sensor.pitch_mm * (np.arange(n_side) - 0.5 * (n_side - 1))
+    X, Y = np.meshgrid(coords, coords, indexing="xy")
+    cx, cy = (float(v) for v in sensor.pupil_center_mm)
+    a = sensor.pupil_radius_mm
+    inside = (X - cx) ** 2 + (Y - cy) ** 2 <= a * a
+    centres = np.stack([X[inside], Y[inside]], axis=1)
+    modes = modes_up_to_order(sensor.zernike_order)
+    rx, ry = (centres[:, 0] - cx) / a, (centres[:, 1] - cy) / a
+    gx = np.empty((len(centres), len(modes)))
+    gy = np.empty_like(gx)
+    for col, j in enumerate(modes):
+        gx[:, col], gy[:, col] = zernike_gradient(j, rx, ry)
+    # W (um) over x (mm): slope = 1e-3 * dW/dx_mm = 1e-3 / a * dZ/drho
+    G = 1e-3 / a * np.vstack([gx, gy])
+    if np.linalg.matrix_rank(G) < len(modes):
+        raise PupilError(
+            f"sensor.pupil_radius_mm: {len(centres)} lenslets cannot resolve {len(modes)} Zernike modes; "
+            "enlarge the pupil or lower sensor.zernike_order"
+        )
+    F = np.linalg.pinv(G)
+    for arr in (centres, G, F):
+        arr.setflags(write=False)
+    return LensletPupil(centres, modes, G, F, a, (cx, cy))
+
+
+def check_pose_range(bench: Bench, poses) -> None:
+    """Raise PoseRangeError if any pose lies outside the bench's valid range."""
+    poses = np.atleast_2d(poses)
+    lim = bench.pose_limits
+    bad_t = np.abs(poses[:, :3]) > lim.translation_mm
+    bad_r = np.linalg.norm(poses[:, 3:], axis=1) > lim.rotation_rad
+    if np.any(~np.isfinite(poses)):
+        raise PoseRangeError("pose: contains NaN or inf")
+    if bad_t.any():
+        p = poses[np.argwhere(bad_t)[0, 0]]
+        raise PoseRangeError(
+            f"pose: translation {np.round(p[:3], 4).tolist()} mm exceeds bench.pose_limits.translation_mm = "
+            f"{lim.translation_mm}; move the lens closer to nominal or widen the limit"
+        )
+    if bad_r.any():
+        p = poses[np.argmax(bad_r)]
+        raise PoseRangeError(
+            f"pose: rotation {np.degrees(np.linalg.norm(p[3:])):.3g} deg exceeds bench.pose_limits.rotation_rad = "
+            f"{lim.rotation_rad:.4g} rad; bring the lens closer to nominal or widen the limit"
+        )
+
+
+@dataclass(frozen=True)
+class ZernikeResult:
+    """Forward-model output for P poses.
+
+    z: (P, m) Zernike coefficients (um, Noll modes ``modes``); slopes: (P, n, 2) rad;
+    irradiance: (P, n) relative to the input beam peak; status: (P, n) ray codes;
+    valid: (P,) all lenslets traced and lit; uv: (P, n, 2) aimed beam coordinates
+    (warm start for nearby poses); rays_traced: total rays traced.
+    """
+
+    z: np.ndarray
+    slopes: np.ndarray
+    irradiance: np.ndarray
+    status: np.ndarray
+    valid: np.ndarray
+    uv: np.ndarray
+    rays_traced: int
+    threshold: float
+
+    def reason(self, p: int = 0) -> str:
+        """Why pose p is invalid ('' if valid)."""
+        if self.valid[p]:
+            return ""
+        st = self.status[p]
+        bad = st != OK
+        if bad.any():
+            codes, counts = np.unique(st[bad], return_counts=True)
+            worst = codes[np.argmax(counts)]
+            return f"{counts.sum()} of {st.size} pupil lenslets not reached: {STATUS_NAMES[int(worst)]}"
+        low = self.irradiance[p] < self.threshold
+        return (
+            f"pupil under-filled: {low.sum()} of {low.size} lenslets below the irradiance threshold "
+            f"(min {self.irradiance[p].min():.3g} of beam peak, threshold {self.threshold:.3g})"
+        )
+
+    def raise_if_invalid(self) -> None:
+        """Raise TraceError/PupilError for the first invalid pose."""
+        for p in np.flatnonzero(~self.valid):
+            st = self.status[p]
+            msg = self.reason(p)
+            if np.any(st == TIR):
+                raise TraceError(f"{msg} at pose {p}; reduce surface slopes or the lens tilt")
+            if np.any((st == CLIPPED) | (st == MISSED)):
+                raise TraceError(f"{msg} at pose {p}; enlarge the lens aperture or re-centre the beam")
+            raise PupilError(
+                f"{msg} at pose {p}: the beam misses or under-fills the sensor pupil; "
+                "change sensor.pupil_radius_mm/pupil_center_mm or placement.distance_mm"
+            )
+
+
+class ForwardModel:
+    """z = h(x, p) for one bench and lens: the posed lens -> SH Zernike coefficients.
+
+    Holds the packed lens and the fixed pupil; stateless otherwise, so it can be
+    shared between threads and pickled to workers.
+    """
+
+    def __init__(self, bench: Bench, lens: Lens, validate: bool = True):
+        self.bench = bench
+        self.lens = lens.validate() if validate else lens
+        self.kernel = lens_kernel(lens, bench.laser.wavelength_nm)
+        self.pupil = lenslet_pupil(bench.sensor)
+
+    @property
+    def modes(self) -> np.ndarray:
+        return self.pupil.modes
+
+    @cached_property
+    def noise_cov(self) -> np.ndarray:
+        """Zernike noise covariance R (m, m) in um^2."""
+        return self.pupil.noise_covariance(self.bench.noise.slope_sigma_urad * 1e-6)
+
+    def evaluate(self, poses, uv0=None, check_range: bool = True) -> ZernikeResult:
+        """Noise-free Zernike coefficients for poses (P, 6); never raises on bad rays."""
+        poses = np.atleast_2d(np.asarray(poses, dtype=float))
+        if check_range:
+            check_pose_range(self.bench, poses)
+        uv, slopes, det, status, n = aim_rays(self.bench, self.lens, poses, self.pupil.centres,
+                                              u0=uv0, kernel=self.kernel)
+        w = 0.5 * self.bench.laser.beam_diameter_mm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            irr = np.exp(-2.0 * (uv[..., 0] ** 2 + uv[..., 1] ** 2) / (w * w)) / det
+        irr = np.where(status == OK, irr, 0.0)
+        thr = self.bench.sensor.irradiance_threshold
+        valid = np.all(status == OK, axis=1) & np.all(irr >= thr, axis=1)
+        z = self.pupil.fit(slopes)
+        return ZernikeResult(z, slopes, irr, status, valid, uv, n, thr)
+
+    def zernike(self, poses, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Zernike coefficients (P, m) or (m,) in um; raises if any pose is not measurable.
+
+        With an rng, slope noise of the bench's noise model is added before the fit.
+        """
+        poses = np.asarray(poses, dtype=float)
+        res = self.evaluate(poses)
+        res.raise_if_invalid()
+        z = res.z
+        if rng is not None:
+            sigma = self.bench.noise.slope_sigma_urad * 1e-6
+            z = self.pupil.fit(res.slopes + rng.normal(0.0, sigma, res.slopes.shape))
+        return z[0] if poses.ndim == 1 else z
+
+
+def measure(bench: Bench, lens: Lens, pose=None, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Zernike vector (um, Noll modes 2..) the SH sensor reports for the lens at ``pose``.
+
+    pose: (6,) or (P, 6) pose vector(s) (mm, rad) relative to the nominal placement
+    (default: nominal). Noise is added when an rng is given.
+    """
+    pose = np.zeros(6) if pose is None else pose
+    return ForwardModel(bench, lens).zernike(pose, rng=rng)
