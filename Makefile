@@ -1,24 +1,27 @@
 # Two entry points, each creating its own virtual environment on a fresh machine.
-PY ?= python3.11
+PY ?= $(shell command -v python3.11 || command -v python3)
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test bench clean
+.PHONY: demo test test-all bench clean
 
-$(BIN)/lensforge: pyproject.toml
+$(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -e ".[test,bench]"
-	touch $(BIN)/lensforge
+	touch $@
 
-demo: $(BIN)/lensforge
+demo: $(BIN)/.installed
 	$(BIN)/lensforge demo
 
-test: $(BIN)/lensforge
+test: $(BIN)/.installed
+	$(BIN)/python -m pytest -q -n 2 -m "not slow"
+
+test-all: $(BIN)/.installed
 	$(BIN)/python -m pytest -q -n 2
 
-bench: $(BIN)/lensforge
-	$(BIN)/python benchmarks/bench_optics.py
+bench: $(BIN)/.installed
+	for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
 clean:
 	rm -rf $(VENV)
