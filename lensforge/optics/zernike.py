@@ -33,6 +33,8 @@ __all__ = [
     "zernike_gradient",
     "to_osa_vector",
     "from_osa_vector",
+    "to_thorlabs_vector",
+    "from_thorlabs_vector",
 ]
 
 
@@ -181,3 +183,13 @@ def from_osa_vector(osa_coefficients) -> tuple[np.ndarray, np.ndarray]:
     noll = np.array([osa_to_noll(i) for i in range(len(c))])
     order = np.argsort(noll)
     return noll[order], c[order]
+
+
+def to_thorlabs_vector(noll_indices, coefficients) -> np.ndarray:
+    """Coefficients (um) reordered as the Thorlabs WFS reports them: entry k-1 holds mode k = OSA + 1."""
+    return to_osa_vector(noll_indices, coefficients)
+
+
+def from_thorlabs_vector(thorlabs_coefficients) -> tuple[np.ndarray, np.ndarray]:
+    """(Noll indices, coefficients) of a Thorlabs-ordered vector (entry k-1 = mode k)."""
+    return from_osa_vector(thorlabs_coefficients)

@@ -1,0 +1,4 @@
+"""python -m lensforge"""
+from .cli import main
+
+main()
