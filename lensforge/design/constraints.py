@@ -1,0 +1,228 @@
+"""Manufacturability and measurability constraints of a design.
+
+* thickness: axial glass thickness >= ``min_center_mm`` on the axis and
+  >= ``min_edge_mm`` everywhere else on the edge diameter (printable; default 1 mm).
+* no total internal reflection for any beam ray (a grid over the beam's 1/e^2 disc at
+  the nominal pose) nor for any lenslet's aimed ray over the working range.
+* working range: every lenslet of the SH pupil stays traced and lit (irradiance
+  above the sensor threshold) at the nominal pose and at a batch of axis and corner
+  poses of the working range (default +-1 mm, +-1 deg), so the robot can move the
+  lens during estimation and calibration. The batch is one ``ForwardModel.evaluate``
+  call: 12 axis poses (each DOF at +-range) and the 16 corners of
+  (tx, ty, rx, ry) at +-range -- lateral beam walk comes from those four DOF.
+
+``violation`` is a non-negative number (0 = feasible) that the optimisers use as a
+penalty; ``check_design`` reports which constraint is violated and by how much.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError, DesignError, LensforgeError
+from ..optics.bench import Bench
+from ..optics.lens import Lens, _polar_grid
+from ..optics.shack_hartmann import ForwardModel
+from ..optics.trace import OK, TIR, trace_rays
+
+__all__ = ["Constraints", "Violation", "Feasibility", "working_poses", "check_design", "require_feasible"]
+
+
+@dataclass(frozen=True)
+class Constraints:
+    """Design constraints (mm, rad).
+
+    min_center_mm / min_edge_mm: minimum axial thickness on the axis / elsewhere;
+    range_mm / range_rad: half-width of the working pose range per DOF (0 disables the
+    range check, the nominal pose is always checked); tir: forbid total internal
+    reflection.
+    """
+
+    min_center_mm: float = 1.0
+    min_edge_mm: float = 1.0
+    range_mm: float = 1.0
+    range_rad: float = math.radians(1.0)
+    tir: bool = True
+
+    def __post_init__(self):
+        for f in ("min_center_mm", "min_edge_mm", "range_mm", "range_rad"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"constraints.{f}: must be a finite number >= 0, got {v!r}")
+            object.__setattr__(self, f, float(v))
+
+    def check_bench(self, bench: Bench) -> None:
+        """ConfigError if the working range exceeds the bench's pose limits."""
+        lim = bench.pose_limits
+        if self.range_mm > lim.translation_mm:
+            raise ConfigError(
+                f"constraints.range_mm: {self.range_mm} mm exceeds bench.pose_limits.translation_mm = "
+                f"{lim.translation_mm}; shrink the working range or widen the limit"
+            )
+        if self.range_rad * math.sqrt(2) > lim.rotation_rad:
+            raise ConfigError(
+                f"constraints.range_rad: corners of +-{math.degrees(self.range_rad):.3g} deg exceed "
+                f"bench.pose_limits.rotation_rad = {lim.rotation_rad:.4g} rad; shrink the range or widen the limit"
+            )
+
+    def to_dict(self) -> dict:
+        return {"min_center_mm": self.min_center_mm, "min_edge_mm": self.min_edge_mm,
+                "range_mm": self.range_mm, "range_rad": self.range_rad, "tir": self.tir}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Constraints":
+        if not isinstance(d, dict):
+            raise ConfigError("constraints: expected an object")
+        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir"}
+        unknown = set(d) - allowed
+        if unknown:
+            raise ConfigError(f"constraints: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class Violation:
+    """One violated constraint: name, measured value, limit, one-line message."""
+
+    constraint: str
+    value: float
+    limit: float
+    message: str
+
+
+@dataclass(frozen=True)
+class Feasibility:
+    """Result of checking a design: ok, violations, and the penalty measure (0 if ok)."""
+
+    ok: bool
+    violations: tuple = ()
+    violation: float = 0.0
+    min_thickness_mm: float = float("nan")
+    center_thickness_mm: float = float("nan")
+    model: ForwardModel | None = field(default=None, repr=False, compare=False)
+    nominal_uv: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def message(self) -> str:
+        return "; ".join(v.message for v in self.violations)
+
+    def to_dict(self) -> dict:
+        return {"feasible": self.ok, "violations": [v.constraint for v in self.violations],
+                "message": self.message(), "min_thickness_mm": self.min_thickness_mm,
+                "center_thickness_mm": self.center_thickness_mm}
+
+
+def working_poses(c: Constraints) -> np.ndarray:
+    """(P, 6) poses checked for the working range: nominal, 12 axis, 16 corners."""
+    a, b = c.range_mm, c.range_rad
+    scale = np.array([a, a, a, b, b, b])
+    rows = [np.zeros(6)]
+    if a > 0 or b > 0:
+        for i in range(6):
+            for s in (1.0, -1.0):
+                e = np.zeros(6)
+                e[i] = s * scale[i]
+                rows.append(e)
+        for sx, sy, srx, sry in itertools.product((1.0, -1.0), repeat=4):
+            rows.append(np.array([sx * a, sy * a, 0.0, srx * b, sry * b, 0.0]))
+    poses = np.unique(np.array(rows), axis=0)
+    order = np.argsort(np.abs(poses).sum(axis=1), kind="stable")  # nominal first
+    return poses[order]
+
+
+def _beam_grid(bench: Bench, n: int = 9) -> np.ndarray:
+    """Beam rays (u, v) on a square grid inside the 1/e^2 disc (mm)."""
+    w = 0.5 * bench.laser.beam_diameter_mm
+    g = np.linspace(-w, w, n)
+    U, V = np.meshgrid(g, g)
+    inside = U**2 + V**2 <= w * w
+    return np.stack([U[inside], V[inside]], axis=1)
+
+
+def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | None = None,
+                 fast: bool = False) -> Feasibility:
+    """Check every constraint; never raises for a non-physical lens (reported instead).
+
+    fast: skip ``Lens.validate`` and use a coarser thickness grid (inside optimisers;
+    the returned design is always re-checked with fast=False).
+    """
+    vs: list[Violation] = []
+    if not fast:
+        try:
+            lens.validate()
+        except LensforgeError as e:
+            return Feasibility(False, (Violation("geometry", float("nan"), 0.0, str(e)),), 1e3)
+    # thickness: centre and the rest of the edge diameter (polar grid incl. the rim)
+    t_c = float(lens.thickness_at(0.0, 0.0))
+    x, y = _polar_grid(0.5 * lens.edge_diameter, *((16, 48) if fast else (48, 96)))
+    t_all = lens.thickness_at(x, y)
+    if not np.all(np.isfinite(t_all)):
+        return Feasibility(False, (Violation("geometry", float("nan"), 0.0,
+                                             "lens: a conic surface is undefined inside the edge diameter; "
+                                             "reduce the curvature"),), 1e3)
+    t_min = float(np.min(t_all[1:]))
+    pen = 0.0
+    if t_c < c.min_center_mm:
+        vs.append(Violation("center_thickness", t_c, c.min_center_mm,
+                            f"centre thickness {t_c:.3f} mm < {c.min_center_mm} mm (constraints.min_center_mm); "
+                            "raise the thickness bound"))
+        pen += (c.min_center_mm - t_c) / max(c.min_center_mm, 1e-3)
+    if t_min < c.min_edge_mm:
+        vs.append(Violation("edge_thickness", t_min, c.min_edge_mm,
+                            f"edge/minimum thickness {t_min:.3f} mm < {c.min_edge_mm} mm (constraints.min_edge_mm); "
+                            "raise the thickness or reduce the surface sags"))
+        pen += (c.min_edge_mm - t_min) / max(c.min_edge_mm, 1e-3)
+    if vs:
+        return Feasibility(False, tuple(vs), 10.0 + pen, t_min, t_c)
+    model = ForwardModel(bench, lens, validate=False)
+    if c.tir:
+        tr = trace_rays(bench, lens, np.zeros((1, 6)), _beam_grid(bench), kernel=model.kernel)
+        n_tir = int(np.sum(tr.status == TIR))
+        if n_tir:
+            vs.append(Violation("tir", n_tir, 0, f"total internal reflection for {n_tir} beam rays at the nominal "
+                                "pose; reduce surface slopes"))
+            pen += n_tir / tr.status.size
+    P = working_poses(c) if poses is None else poses
+    res = model.evaluate(P[:1], check_range=False)
+    uv0 = res.uv[0] if res.valid[0] else None
+    status, irr, valid = res.status, res.irradiance, res.valid
+    if len(P) > 1:
+        # the whole working batch in one call, warm-started from the nominal aim
+        warm = None if uv0 is None else np.broadcast_to(uv0, (len(P) - 1,) + uv0.shape)
+        res2 = model.evaluate(P[1:], uv0=warm, check_range=False)
+        status = np.concatenate([status, res2.status])
+        irr = np.concatenate([irr, res2.irradiance])
+        valid = np.concatenate([valid, res2.valid])
+    if c.tir and np.any(status == TIR):
+        n_tir = int(np.sum(np.any(status == TIR, axis=1)))
+        vs.append(Violation("tir", n_tir, 0, f"total internal reflection of pupil rays at {n_tir} of {len(P)} "
+                            "working-range poses; reduce surface slopes"))
+        pen += float(np.mean(status == TIR))
+    if not valid.all():
+        bad = np.flatnonzero(~valid)
+        worst = bad[0]
+        not_ok = float(np.mean(status != OK))
+        thr = res.threshold
+        short = float(np.mean(np.clip((thr - np.where(status == OK, irr, 0.0)) / thr, 0.0, 1.0)))
+        where = "the nominal pose" if worst == 0 else f"working-range pose {np.round(P[worst], 4).tolist()} (mm, rad)"
+        # reason text of the first bad pose
+        st = status[worst]
+        if np.any(st != OK):
+            why = f"{int(np.sum(st != OK))} of {st.size} pupil lenslets not reached"
+        else:
+            why = f"pupil under-filled (min irradiance {irr[worst].min():.3g} < threshold {thr:.3g})"
+        vs.append(Violation("pupil_lit", float(len(bad)), 0.0,
+                            f"SH pupil not fully lit at {len(bad)} of {len(P)} working-range poses, first at {where}: "
+                            f"{why}; reduce surface power/tilt or shrink the working range (constraints.range_mm/range_rad)"))
+        pen += 1.0 + not_ok + short
+    return Feasibility(not vs, tuple(vs), pen, t_min, t_c, model, uv0)
+
+
+def require_feasible(f: Feasibility, what: str = "design") -> None:
+    """Raise DesignError naming the violated constraint(s)."""
+    if not f.ok:
+        names = ", ".join(sorted({v.constraint for v in f.violations}))
+        raise DesignError(f"{what} is infeasible ({names}): {f.message()}")

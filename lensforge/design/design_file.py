@@ -1,0 +1,203 @@
+"""The design file: one optimised (or evaluated) lens with everything that produced it.
+
+JSON, ``schema_version`` 1. Keys: ``model``, ``free`` (free-parameter names),
+``parameters`` {name: value}, ``bounds`` {name: [lo, hi]}, ``labels`` {name: text},
+``lens`` (``Lens.to_dict()``; the manufacturing and verification modules read the lens
+from here), ``bench`` (``Bench.to_dict()``), ``criterion``, ``weights``,
+``constraints``, ``feasibility``, ``metrics`` (rank, kappa, sigma_min, J, D, A, CRLB
+std per DOF in um / urad, ...), ``method``, ``seed``, ``settings``, ``start``,
+``history`` (best cost per iteration, thinned to at most 200 rows), ``n_evals``,
+``wall_time_s``, ``lensforge_version``. ``load_design(save_design(d))`` gives back
+a design whose ``to_dict()`` equals the original's.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..optics.bench import Bench, write_atomic
+from ..optics.lens import Lens
+
+__all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
+
+SCHEMA_VERSION = 1
+_MAX_HISTORY = 200
+
+
+def _plain(o):
+    """Numpy scalars/arrays and tuples -> JSON types (recursively)."""
+    if isinstance(o, dict):
+        return {str(k): _plain(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_plain(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _plain(o.tolist())
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        o = o.item()
+    if isinstance(o, float) and not np.isfinite(o):
+        return None
+    return o
+
+
+def metrics_dict(m, weights=(1.0, 1.0)) -> dict:
+    """JSON-ready metrics of a ``Metrics`` object plus the D and A criteria and the CRLB."""
+    from .criteria import criteria_values
+
+    d = m.to_dict()
+    crit = criteria_values(m, weights)
+    d["D"] = crit["D"]
+    d["A"] = crit["A"]
+    d["crlb_mm_rad"] = _plain(np.where(np.isfinite(m.crlb), m.crlb, np.nan))
+    return _plain(d)
+
+
+def thin_history(history, n_max: int = _MAX_HISTORY) -> list:
+    """At most n_max rows, first and last kept, evenly spaced."""
+    history = list(history)
+    if len(history) <= n_max:
+        return history
+    idx = np.unique(np.linspace(0, len(history) - 1, n_max).round().astype(int))
+    return [history[i] for i in idx]
+
+
+@dataclass(frozen=True)
+class Design:
+    """A lens design and its provenance (see module docstring for the fields)."""
+
+    lens: Lens
+    bench: Bench
+    model: str
+    free: tuple
+    parameters: dict
+    bounds: dict
+    criterion: str = "J"
+    weights: tuple = (1.0, 1.0)
+    constraints: dict = field(default_factory=dict)
+    feasibility: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    method: str = ""
+    seed: int | None = None
+    settings: dict = field(default_factory=dict)
+    start: dict = field(default_factory=dict)
+    history: tuple = ()
+    n_evals: int = 0
+    wall_time_s: float = 0.0
+    labels: dict = field(default_factory=dict)
+    lensforge_version: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "free", tuple(self.free))
+        object.__setattr__(self, "weights", tuple(float(w) for w in self.weights))
+        object.__setattr__(self, "history", tuple(thin_history(_plain(list(self.history)))))
+        for f in ("parameters", "bounds", "constraints", "feasibility", "metrics", "settings", "start", "labels"):
+            object.__setattr__(self, f, _plain(dict(getattr(self, f))))
+        if not self.lensforge_version:
+            from .. import __version__
+
+            object.__setattr__(self, "lensforge_version", __version__)
+
+    # convenience -------------------------------------------------------------
+    @property
+    def J(self):
+        return self.metrics.get("J")
+
+    @property
+    def rank(self):
+        return self.metrics.get("rank")
+
+    def compute_metrics(self, bench: Bench | None = None):
+        """Fresh ``Metrics`` of the lens on ``bench`` (default: the design's own bench)."""
+        from ..optics.sensitivity import metrics
+
+        return metrics(bench or self.bench, self.lens, weights=self.weights)
+
+    def parameter_vector(self) -> np.ndarray:
+        return np.array([self.parameters[n] for n in self.free], dtype=float)
+
+    # I/O ----------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "kind": "lensforge.design",
+            "model": self.model,
+            "free": list(self.free),
+            "parameters": copy.deepcopy(self.parameters),
+            "bounds": copy.deepcopy(self.bounds),
+            "labels": copy.deepcopy(self.labels),
+            "lens": self.lens.to_dict(),
+            "bench": self.bench.to_dict(),
+            "criterion": self.criterion,
+            "weights": list(self.weights),
+            "constraints": copy.deepcopy(self.constraints),
+            "feasibility": copy.deepcopy(self.feasibility),
+            "metrics": copy.deepcopy(self.metrics),
+            "method": self.method,
+            "seed": self.seed,
+            "settings": copy.deepcopy(self.settings),
+            "start": copy.deepcopy(self.start),
+            "history": copy.deepcopy(list(self.history)),
+            "n_evals": int(self.n_evals),
+            "wall_time_s": float(self.wall_time_s),
+            "lensforge_version": self.lensforge_version,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "design") -> "Design":
+        if not isinstance(d, dict):
+            raise ConfigError(f"{where}: expected a JSON object")
+        ver = d.get("schema_version")
+        if ver != SCHEMA_VERSION:
+            raise ConfigError(f"{where}.schema_version: expected {SCHEMA_VERSION}, got {ver!r}; "
+                              "re-run `lensforge design` with this lensforge version")
+        for req in ("lens", "bench", "model", "free", "parameters"):
+            if req not in d:
+                raise ConfigError(f"{where}.{req}: missing")
+        seed = d.get("seed")
+        return cls(
+            lens=Lens.from_dict(d["lens"], f"{where}.lens"),
+            bench=Bench.from_dict(d["bench"], f"{where}.bench"),
+            model=str(d["model"]),
+            free=tuple(d["free"]),
+            parameters=d["parameters"],
+            bounds=d.get("bounds", {}),
+            criterion=str(d.get("criterion", "J")),
+            weights=tuple(d.get("weights", (1.0, 1.0))),
+            constraints=d.get("constraints", {}),
+            feasibility=d.get("feasibility", {}),
+            metrics=d.get("metrics", {}),
+            method=str(d.get("method", "")),
+            seed=None if seed is None else int(seed),
+            settings=d.get("settings", {}),
+            start=d.get("start", {}),
+            history=tuple(d.get("history", ())),
+            n_evals=int(d.get("n_evals", 0)),
+            wall_time_s=float(d.get("wall_time_s", 0.0)),
+            labels=d.get("labels", {}),
+            lensforge_version=str(d.get("lensforge_version", "")),
+        )
+
+
+def save_design(design: Design, path) -> Path:
+    """Write the design as JSON (atomically); returns the path."""
+    text = json.dumps(design.to_dict(), indent=2, allow_nan=False)
+    return write_atomic(path, text + "\n")
+
+
+def load_design(path) -> Design:
+    """Read a design JSON file written by ``save_design``."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"design file {p}: not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"design file {p}: cannot be read ({e})") from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"design file {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    return Design.from_dict(data, where=f"{p.name}")

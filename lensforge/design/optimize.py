@@ -1,0 +1,414 @@
+"""Derivative-free lens optimisation: Nelder-Mead, particle swarm, GA and CMA-ES.
+
+All optimisers work in the unit box u in [0, 1]^n (p = lower + u (upper - lower)) on
+one cost: the chosen criterion (criteria.py) for a feasible lens, and
+INFEASIBLE + violation for a lens that breaks a constraint (constraints.py). All
+four methods only compare cost values, so the penalty's size does not bias them.
+The best feasible lens seen is returned, re-checked with the full constraint check;
+an infeasible result raises DesignError naming the violated constraint.
+
+Seeds: every random draw lensforge makes comes from ``numpy.random.default_rng(seed)``.
+pyswarms, pymoo and cma draw from numpy's *global* generator; lensforge seeds it for
+the duration of the run and restores its previous state afterwards.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError, DesignError, LensforgeError
+from ..optics.bench import Bench
+from ..optics.lens import Lens
+from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
+from .constraints import Constraints, check_design, require_feasible, working_poses
+from .criteria import check_criterion, criterion_value
+from .design_file import Design, metrics_dict
+from .parameterisation import Parameterisation, parameterisation
+
+__all__ = ["METHODS", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE"]
+
+METHODS = ("nelder-mead", "pso", "ga", "cmaes")
+_ALIASES = {"nm": "nelder-mead", "nelder_mead": "nelder-mead", "neldermead": "nelder-mead", "simplex": "nelder-mead",
+            "cma": "cmaes", "cma-es": "cmaes", "cma_es": "cmaes", "genetic": "ga", "swarm": "pso"}
+DEFAULT_MAX_EVALS = {"nelder-mead": 1500, "pso": 3000, "ga": 3000, "cmaes": 1500}
+INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
+_MAX_START_TRIES = 400
+
+
+class _Stop(Exception):
+    """Budget (evaluations or wall time) exhausted."""
+
+
+def check_method(method: str) -> str:
+    key = str(method).strip().lower()
+    key = _ALIASES.get(key, key)
+    if key not in METHODS:
+        raise ConfigError(f"method: unknown optimiser {method!r}; use one of {', '.join(METHODS)}")
+    return key
+
+
+@contextlib.contextmanager
+def _global_numpy_seed(seed: int):
+    """Seed numpy's global generator (used by pyswarms, pymoo, cma); restore it after."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
+
+
+class _Progress:
+    """Rich progress bar on stderr (or nothing)."""
+
+    def __init__(self, enabled: bool, total: int, label: str):
+        self.enabled = enabled
+        self.total = total
+        self.label = label
+        self._p = None
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._p = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+            self._p.__enter__()
+            self._task = self._p.add_task(self.label, total=self.total)
+        return self
+
+    def update(self, n: int, best: float):
+        if self._p is not None:
+            txt = f"{self.label}  best {best:.5g}" if best < INFEASIBLE else f"{self.label}  (no feasible yet)"
+            self._p.update(self._task, completed=min(n, self.total), description=txt)
+
+    def __exit__(self, *exc):
+        if self._p is not None:
+            self._p.__exit__(*exc)
+        return False
+
+
+class DesignProblem:
+    """Cost function of one design run: u (unit box) -> criterion or penalty.
+
+    Counts evaluations, keeps the best feasible point and the iteration history.
+    Stateful by design but local to one run; not shared.
+    """
+
+    def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
+                 constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
+                 progress: _Progress | None = None):
+        self.bench = bench
+        self.par = par
+        self.criterion = check_criterion(criterion)
+        self.weights = tuple(float(w) for w in weights)
+        self.constraints = constraints or Constraints()
+        self.constraints.check_bench(bench)
+        self.poses = working_poses(self.constraints)
+        self.max_evals = int(max_evals)
+        self.time_limit_s = time_limit_s
+        self.progress = progress
+        self.n_evals = 0
+        self.best_cost = np.inf
+        self.best_u = None
+        self.history: list[dict] = []
+        self.iteration = 0
+        self.t0 = time.perf_counter()
+
+    # one lens ---------------------------------------------------------------
+    def evaluate_p(self, p):
+        """(cost, Feasibility, Metrics or None) of parameter vector p; never raises for bad lenses."""
+        try:
+            lens = self.par.to_lens(p)
+        except LensforgeError as e:
+            from .constraints import Feasibility, Violation
+
+            return INFEASIBLE * 10, Feasibility(False, (Violation("geometry", np.nan, 0.0, str(e)),), 1e3), None
+        f = check_design(self.bench, lens, self.constraints, self.poses, fast=True)
+        if not f.ok:
+            return INFEASIBLE * (1.0 + f.violation), f, None
+        S, z0, _ = sensitivity_from_model(f.model, raise_invalid=False)
+        if S is None:
+            return INFEASIBLE * 2.0, f, None
+        m = metrics_from_S(S, f.model.noise_cov, self.bench, z0, self.weights)
+        return criterion_value(self.criterion, m, self.weights), f, m
+
+    def __call__(self, u) -> float:
+        if self.n_evals >= self.max_evals:
+            raise _Stop
+        if self.time_limit_s is not None and time.perf_counter() - self.t0 > self.time_limit_s:
+            raise _Stop
+        u = np.clip(np.asarray(u, dtype=float), 0.0, 1.0)
+        cost = float(self.evaluate_p(self.par.from_unit(u))[0])
+        self.n_evals += 1
+        if cost < self.best_cost:
+            self.best_cost = cost
+            self.best_u = u.copy()
+        if self.progress is not None:
+            self.progress.update(self.n_evals, self.best_cost)
+        return cost
+
+    def batch(self, U) -> np.ndarray:
+        """Costs of the rows of U (raises _Stop once the budget is spent)."""
+        out = np.array([self(u) for u in np.atleast_2d(U)])
+        self.record()
+        return out
+
+    def record(self, **extra) -> None:
+        """Append one iteration row to the history."""
+        self.iteration += 1
+        row = {"iteration": self.iteration, "n_evals": self.n_evals,
+               "best": float(self.best_cost) if np.isfinite(self.best_cost) else None,
+               "feasible": bool(self.best_cost < INFEASIBLE),
+               "t_s": round(time.perf_counter() - self.t0, 4)}
+        row.update(extra)
+        self.history.append(row)
+
+    # starts -----------------------------------------------------------------
+    def random_feasible_start(self, rng: np.random.Generator, tries: int = _MAX_START_TRIES) -> np.ndarray:
+        """A uniformly drawn feasible point of the unit box (DesignError if none in ``tries``)."""
+        seen = Counter()
+        first = {}
+        for _ in range(tries):
+            u = rng.random(self.par.n)
+            cost, f, m = self.evaluate_p(self.par.from_unit(u))
+            if cost < INFEASIBLE:
+                return u
+            for v in f.violations:
+                seen[v.constraint] += 1
+                first.setdefault(v.constraint, v.message)
+        name, count = seen.most_common(1)[0]
+        raise DesignError(
+            f"no feasible design found in {tries} random samples of the bounds: constraint {name!r} violated in "
+            f"{count} of them (e.g. {first[name]}); widen the bounds, relax the constraints or change the bench"
+        )
+
+
+def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
+    """Feasible start u0 and a word on where it came from."""
+    par = prob.par
+    if isinstance(start, str):
+        key = start.lower()
+        if key not in ("paper", "template", "random"):
+            raise ConfigError(f"start: expected 'paper', 'random' or a parameter vector, got {start!r}")
+        if key in ("paper", "template"):
+            p = par.from_lens(par.template)
+            if par.in_bounds(p) and prob.evaluate_p(p)[0] < INFEASIBLE:
+                return par.to_unit(p), "template"
+        return prob.random_feasible_start(rng), "random"
+    p = np.asarray(start, dtype=float)
+    if p.shape != (par.n,):
+        raise ConfigError(f"start: expected {par.n} values for {list(par.names)}, got shape {p.shape}")
+    if not par.in_bounds(p):
+        raise ConfigError(f"start: vector lies outside the bounds {par.bounds_dict()}")
+    cost, f, _ = prob.evaluate_p(p)
+    if cost >= INFEASIBLE:
+        require_feasible(check_design(prob.bench, par.to_lens(p), prob.constraints), "start design")
+    return par.to_unit(p), "given"
+
+
+# --- the four optimisers -------------------------------------------------------
+
+def _run_nelder_mead(prob: DesignProblem, starts: list, opts: dict) -> dict:
+    from scipy.optimize import minimize
+
+    n = prob.par.n
+    per = max(n + 2, (prob.max_evals - prob.n_evals) // max(len(starts), 1))
+    step = float(opts.get("simplex_step", 0.1))
+    info = {"starts": len(starts), "evals_per_start": per}
+    for k, u0 in enumerate(starts):
+        simplex = [u0]
+        for i in range(n):
+            v = u0.copy()
+            v[i] = v[i] + step if v[i] + step <= 1.0 else v[i] - step
+            simplex.append(v)
+        f0 = max(abs(prob(u0)), 1.0)
+        budget_end = min(prob.max_evals, prob.n_evals + per - 1)
+        try:
+            minimize(lambda u: prob(u) if prob.n_evals < budget_end else _raise_stop(), u0, method="Nelder-Mead",
+                     bounds=[(0.0, 1.0)] * n, callback=lambda *a: prob.record(start=k),
+                     options={"initial_simplex": np.array(simplex), "maxfev": per, "maxiter": 100 * per,
+                              "xatol": float(opts.get("xtol", 1e-5)), "fatol": float(opts.get("ftol", 1e-7)) * f0,
+                              "adaptive": n > 4})
+        except _Stop:
+            if prob.n_evals >= prob.max_evals or _time_up(prob):
+                break
+    return info
+
+
+def _raise_stop():
+    raise _Stop
+
+
+def _time_up(prob: DesignProblem) -> bool:
+    return prob.time_limit_s is not None and time.perf_counter() - prob.t0 > prob.time_limit_s
+
+
+def _run_pso(prob: DesignProblem, u0, rng, opts: dict) -> dict:
+    from pyswarms.single import GlobalBestPSO
+
+    n = prob.par.n
+    particles = int(opts.get("particles", 30))
+    iters = max(1, (prob.max_evals - prob.n_evals) // particles)
+    init = rng.random((particles, n))
+    init[0] = u0
+    # Clerc-Kennedy constriction coefficients (w = 0.7298, c1 = c2 = 1.49618)
+    options = {"c1": float(opts.get("c1", 1.49618)), "c2": float(opts.get("c2", 1.49618)),
+               "w": float(opts.get("w", 0.7298))}
+    ftol = float(opts.get("ftol", 0.0))
+    pso = GlobalBestPSO(n_particles=particles, dimensions=n, options=options,
+                        bounds=(np.zeros(n), np.ones(n)), bh_strategy="nearest", velocity_clamp=(-0.3, 0.3),
+                        ftol=ftol if ftol > 0 else -np.inf, ftol_iter=int(opts.get("ftol_iter", 20)), init_pos=init)
+    try:
+        pso.optimize(prob.batch, iters=iters, verbose=False)
+    except _Stop:
+        pass
+    return {"particles": particles, "iterations": iters, **options}
+
+
+def _run_ga(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
+    from pymoo.algorithms.soo.nonconvex.ga import GA
+    from pymoo.core.problem import Problem
+    from pymoo.optimize import minimize
+
+    n = prob.par.n
+    pop = int(opts.get("population", 30))
+    X0 = rng.random((pop, n))
+    X0[0] = u0
+
+    class _P(Problem):
+        def __init__(self):
+            super().__init__(n_var=n, n_obj=1, xl=np.zeros(n), xu=np.ones(n))
+
+        def _evaluate(self, X, out, *args, **kwargs):
+            out["F"] = prob.batch(X)[:, None]
+
+    gens = max(1, (prob.max_evals - prob.n_evals) // pop)
+    try:
+        minimize(_P(), GA(pop_size=pop, sampling=X0, eliminate_duplicates=True), ("n_gen", gens),
+                 seed=seed, verbose=False)
+    except _Stop:
+        pass
+    return {"population": pop, "generations": gens}
+
+
+def _run_cmaes(prob: DesignProblem, u0, seed: int, opts: dict) -> dict:
+    import cma
+
+    sigma0 = float(opts.get("sigma0", 0.2))
+    cma_seed = int(np.random.SeedSequence(seed).generate_state(1)[0] % (2**31 - 2)) + 1  # cma: 0 means 'time'
+    copts = {"seed": cma_seed, "bounds": [0.0, 1.0], "maxfevals": prob.max_evals - prob.n_evals, "verbose": -9,
+             "verb_disp": 0, "verb_log": 0, "tolfun": float(opts.get("ftol", 1e-11)), "tolx": float(opts.get("xtol", 1e-8))}
+    if opts.get("population"):
+        copts["popsize"] = int(opts["population"])
+    es = cma.CMAEvolutionStrategy(np.asarray(u0, dtype=float), sigma0, copts)
+    try:
+        while not es.stop():
+            X = es.ask()
+            F = prob.batch(np.array(X))
+            es.tell(X, list(F))
+    except _Stop:
+        pass
+    return {"sigma0": sigma0, "popsize": int(es.popsize), "stop": {k: _plain_stop(v) for k, v in es.stop().items()}}
+
+
+def _plain_stop(v):
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return str(v)
+
+
+# --- public entry point ----------------------------------------------------------
+
+def optimize_design(bench: Bench | None = None, model: str = "zernike", method: str = "nelder-mead", seed: int = 0,
+                    criterion: str = "J", weights=(1.0, 1.0), free=None, bounds=None,
+                    constraints: Constraints | None = None, max_evals: int | None = None, start="paper",
+                    n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.2,
+                    ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,
+                    template: Lens | None = None) -> Design:
+    """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
+
+    bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
+    'zernike', 'conic'; method: 'nelder-mead', 'pso', 'ga', 'cmaes'; seed: int (same
+    seed, same result); criterion: 'J' (paper), 'D' or 'A'; weights: (w1, w2) of J;
+    free / bounds: see ``parameterisation``; constraints: :class:`Constraints`;
+    max_evals: cost evaluations (default per method, DEFAULT_MAX_EVALS); start:
+    'paper' (the template lens's vector if feasible, else random), 'random' or a
+    parameter vector; n_starts: Nelder-Mead starts (the 1st from ``start``, the
+    rest random feasible); particles (PSO); population (GA, CMA-ES); sigma0: CMA-ES
+    step in the unit box; ftol: relative stopping tolerance on the cost;
+    time_limit_s: wall-clock limit; progress: rich progress bar on stderr.
+    Raises ConfigError for bad settings and DesignError for an infeasible problem.
+    """
+    bench = bench or Bench.default()
+    meth = check_method(method)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"seed: expected an integer >= 0, got {seed!r}")
+    seed = int(seed)
+    crit = check_criterion(criterion)
+    try:
+        weights = tuple(float(w) for w in weights)
+    except (TypeError, ValueError):
+        raise ConfigError(f"weights: expected two numbers (w1, w2), got {weights!r}") from None
+    if len(weights) != 2 or not all(np.isfinite(weights)) or min(weights) < 0 or max(weights) <= 0:
+        raise ConfigError(f"weights: expected two finite numbers >= 0, not both 0, got {weights!r}")
+    par = parameterisation(model, free=free, bounds=bounds, template=template)
+    evals = DEFAULT_MAX_EVALS[meth] if max_evals is None else int(max_evals)
+    if evals < par.n + 2:
+        raise ConfigError(f"max_evals: {evals} is too small for {par.n} free parameters; use at least {par.n + 2}")
+    if int(n_starts) < 1 or int(particles) < 2 or (population is not None and int(population) < 4):
+        raise ConfigError("n_starts must be >= 1, particles >= 2 and population >= 4")
+    if time_limit_s is not None and not time_limit_s > 0:
+        raise ConfigError(f"time_limit_s: must be > 0 seconds, got {time_limit_s}")
+    constraints = constraints or Constraints()
+    rng = np.random.default_rng(seed)
+    label = f"{meth} {par.model} ({crit})"
+    t0 = time.perf_counter()
+    with _Progress(progress, evals, label) as prog:
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog)
+        u0, start_kind = _start_point(prob, start, rng)
+        p_start = par.from_unit(u0)
+        start_cost = prob.evaluate_p(p_start)[0]
+        opts = {"particles": particles, "population": population, "sigma0": sigma0}
+        if ftol is not None:
+            opts["ftol"] = ftol
+        with contextlib.redirect_stdout(sys.stderr), _global_numpy_seed(seed):
+            if meth == "nelder-mead":
+                starts = [u0] + [prob.random_feasible_start(rng) for _ in range(int(n_starts) - 1)]
+                info = _run_nelder_mead(prob, starts, opts)
+            elif meth == "pso":
+                info = _run_pso(prob, u0, rng, opts)
+            elif meth == "ga":
+                opts["population"] = population or 30
+                info = _run_ga(prob, u0, rng, seed, opts)
+            else:
+                info = _run_cmaes(prob, u0, seed, opts)
+        prob.record(final=True)
+    wall = time.perf_counter() - t0
+    if prob.best_u is None or prob.best_cost >= INFEASIBLE:
+        raise DesignError(f"{meth} found no feasible design in {prob.n_evals} evaluations; "
+                          "widen the bounds or relax the constraints")
+    p_best = par.from_unit(prob.best_u)
+    lens = par.to_lens(p_best).replace(name=f"lensforge {par.model} ({meth}, {crit}, seed {seed})")
+    feas = check_design(bench, lens, constraints, prob.poses, fast=False)
+    require_feasible(feas, f"optimised {par.model} design")
+    S, z0, _ = sensitivity_from_model(feas.model)
+    m = metrics_from_S(S, feas.model.noise_cov, bench, z0, weights)
+    settings = {"max_evals": evals, "n_starts": int(n_starts), "ftol": ftol, "time_limit_s": time_limit_s, **info}
+    return Design(
+        lens=lens, bench=bench, model=par.model, free=par.names,
+        parameters={n: float(v) for n, v in zip(par.names, p_best)}, bounds=par.bounds_dict(),
+        criterion=crit, weights=weights, constraints=constraints.to_dict(), feasibility=feas.to_dict(),
+        metrics={**metrics_dict(m, weights), "criterion_value": criterion_value(crit, m, weights)},
+        method=meth, seed=seed, settings=settings,
+        start={"kind": start_kind, "parameters": [float(v) for v in p_start], "cost": float(start_cost)},
+        history=prob.history, n_evals=prob.n_evals, wall_time_s=round(wall, 3), labels=par.labels(),
+    )
