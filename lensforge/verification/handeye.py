@@ -1,0 +1,746 @@
+"""Robot-world-hand-eye calibration A_i X = Z B_i with uncertainty.
+
+Frames (DESIGN.md): A_i = ^W T_E (robot flange in the base), B_i = ^S T_O (lens in
+the sensor frame), X = ^E T_O (the grasp), Z = ^W T_S (the sensor in the robot
+base). 4x4 homogeneous transforms, mm and rad.
+
+Perturbation convention (used for every covariance in this module): a pose T is
+perturbed on the right, T (+) xi = T . P(xi), with xi = (rho, omega) in (mm, rad)
+and P = ``pose_to_matrix`` (translation rho and rotation vector omega, expressed in
+T's own child frame). This is DESIGN.md's pose-vector convention T_SO(x) =
+T_SO(nominal) . P(x), so a pose-estimator covariance of x taken at x ~ 0 can be
+used as ``cov_B`` directly; ``pose_vector_cov_to_right`` converts it exactly at
+any x. Hence cov_X is in {O} axes (at the lens origin) and cov_Z in {S} axes (at
+the sensor origin).
+
+Noise model: measured A_i = A_i,true P(a_i), a_i ~ N(0, Sigma_A) and measured
+B_i = B_i,true P(b_i), b_i ~ N(0, Sigma_B,i). The pose residual
+E_i = (Z B_i)^-1 A_i X = P(-b_i) P(Ad_{X^-1} a_i) has, to first order,
+e_i = log E_i ~ N(0, Sigma_B,i + Ad_{X^-1} Sigma_A Ad_{X^-1}^T); maximum likelihood
+minimises sum_i e_i^T Sigma_i^-1 e_i over (X, Z) (the errors-in-variables problem
+with the nuisance true poses eliminated, Gauss-Helmert style), and its Fisher
+information J^T Sigma^-1 J, J_i = [I, -Ad_{B_i^-1}], gives the Cramer-Rao bound.
+The same residual and weighting idea underlies Strobl & Hirzinger, "Optimal
+Hand-Eye Calibration", IROS 2006 (the paper's solver [26]).
+
+Closed forms: Shah, "Solving the robot-world/hand-eye calibration problem using
+the Kronecker product", J. Mech. Robot. 5(3) 2013 (rotation from the top singular
+pair of sum R_B (x) R_A, then translations by linear least squares); Li, Wang & Wu,
+"Simultaneous robot-world and hand-eye calibration using dual-quaternions and
+Kronecker product", Int. J. Phys. Sci. 5(10) 2010 (rotation and translation from
+one joint linear system).
+"""
+
+from __future__ import annotations
+
+import warnings as _warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..errors import CalibrationError
+from ..optics.pose import matrix_to_pose, pose_to_matrix
+
+__all__ = [
+    "HandEyeResult",
+    "solve_handeye",
+    "handeye_jacobian",
+    "handeye_fisher",
+    "residual_covariances",
+    "observability",
+    "adjoint",
+    "invert_poses",
+    "pose_vector_cov_to_right",
+    "METHODS",
+]
+
+METHODS = ("ml", "shah", "li")
+
+# a direction counts as unobservable when its relative singular value (column-
+# equilibrated whitened Jacobian) is below max(_RTOL_ABS, _NOISE_FACTOR * sigma_rot):
+# motion diversity that does not rise clearly above the rotation noise cannot be
+# told apart from noise (ASSUMPTION: factor 10, checked on the degenerate tests).
+_RTOL_ABS = 1e-9
+_NOISE_FACTOR = 10.0
+_ORTHO_TOL = 1e-6  # |R^T R - I| tolerated in input rotations
+
+
+# ----------------------------------------------------------------------------- SE(3) helpers
+
+
+def invert_poses(T) -> np.ndarray:
+    """Inverse(s) of rigid transform(s) (..., 4, 4), exact for orthonormal R."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _skew(v) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors of rotation matrices (n, 3, 3) via quaternions (Shepperd's
+    branch choice; accurate near the identity and near pi). Same result as scipy's
+    Rotation.from_matrix(R).as_rotvec() for orthonormal R, several times faster."""
+    m = R
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    k = np.argmax(cand, axis=1)
+    q = np.empty((R.shape[0], 4))  # (x, y, z, w)
+    i0 = k == 0
+    if i0.any():
+        t = m[i0]
+        w = 0.5 * np.sqrt(1.0 + tr[i0])
+        q[i0, 3] = w
+        q[i0, 0] = (t[:, 2, 1] - t[:, 1, 2]) / (4 * w)
+        q[i0, 1] = (t[:, 0, 2] - t[:, 2, 0]) / (4 * w)
+        q[i0, 2] = (t[:, 1, 0] - t[:, 0, 1]) / (4 * w)
+    for a in range(3):
+        sel = k == a + 1
+        if not sel.any():
+            continue
+        b, c = (a + 1) % 3, (a + 2) % 3
+        t = m[sel]
+        qa = 0.5 * np.sqrt(1.0 + t[:, a, a] - t[:, b, b] - t[:, c, c])
+        q[sel, a] = qa
+        q[sel, b] = (t[:, b, a] + t[:, a, b]) / (4 * qa)
+        q[sel, c] = (t[:, c, a] + t[:, a, c]) / (4 * qa)
+        q[sel, 3] = (t[:, c, b] - t[:, b, c]) / (4 * qa)
+    q[q[:, 3] < 0] *= -1.0
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    vn = np.linalg.norm(q[:, :3], axis=1)
+    ang = 2.0 * np.arctan2(vn, q[:, 3])
+    small = vn < 1e-8
+    scale = np.where(small, 2.0 / np.maximum(q[:, 3], 1e-300) * (1.0 + vn**2 / 3.0),
+                     ang / np.where(small, 1.0, vn))
+    return q[:, :3] * scale[:, None]
+
+
+def _log(T: np.ndarray) -> np.ndarray:
+    """Pose vectors (n, 6) of transforms (n, 4, 4): (t, rotvec), as matrix_to_pose."""
+    return np.concatenate([T[:, :3, 3], _rotvec(T[:, :3, :3])], axis=1)
+
+
+def _exp(x: np.ndarray) -> np.ndarray:
+    """Transforms of pose vectors (..., 6) (Rodrigues), as pose_to_matrix."""
+    x = np.asarray(x, dtype=float)
+    r = x[..., 3:]
+    th = np.linalg.norm(r, axis=-1)[..., None, None]
+    K = _skew(r)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
+    T = np.zeros(x.shape[:-1] + (4, 4))
+    T[..., :3, :3] = np.eye(3) + a * K + b * (K @ K)
+    T[..., :3, 3] = x[..., :3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def adjoint(T) -> np.ndarray:
+    """6x6 adjoint(s) of T for xi = (rho, omega): T P(xi) T^-1 = P(Ad_T xi) to first order."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Ad = np.zeros(T.shape[:-2] + (6, 6))
+    Ad[..., :3, :3] = R
+    Ad[..., :3, 3:] = _skew(t) @ R
+    Ad[..., 3:, 3:] = R
+    return Ad
+
+
+def _right_jacobian_so3(r) -> np.ndarray:
+    """Right Jacobian J_r(r) of SO(3): R(r + dr) = R(r) Exp(J_r(r) dr) to first order."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r)
+    K = _skew(r)
+    if th < 1e-8:
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return (np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K)
+
+
+def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:
+    """Covariance of a pose vector x = (t, r) (as returned by the pose estimator, where
+    T = T_nominal P(x)) converted to this module's right perturbation of T.
+
+    P(x + dx) = P(x) P(xi) with xi = (R(r)^T dt, J_r(r) dr) to first order.
+    """
+    x = np.asarray(x, dtype=float)
+    M = np.zeros((6, 6))
+    M[:3, :3] = Rotation.from_rotvec(x[3:]).as_matrix().T
+    M[3:, 3:] = _right_jacobian_so3(x[3:])
+    return M @ np.asarray(cov_x, dtype=float) @ M.T
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _as_poses(P, name: str) -> np.ndarray:
+    try:
+        P = np.asarray(P, dtype=float)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{name}: expected a list of 4x4 numeric matrices") from None
+    if P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise CalibrationError(f"{name}: expected shape (n, 4, 4), got {P.shape}; give a list of 4x4 homogeneous matrices")
+    if not np.all(np.isfinite(P)):
+        raise CalibrationError(f"{name}: contains NaN or infinite values")
+    bad = np.flatnonzero(np.abs(P[:, 3, :] - [0, 0, 0, 1]).max(axis=1) > 1e-9)
+    if bad.size:
+        raise CalibrationError(f"{name}[{bad[0]}]: last row must be [0, 0, 0, 1]")
+    R = P[:, :3, :3]
+    orth = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(R)
+    bad = np.flatnonzero((orth > _ORTHO_TOL) | (det < 0))
+    if bad.size:
+        i = bad[0]
+        raise CalibrationError(
+            f"{name}[{i}]: rotation block is not orthonormal with det +1 (|R^T R - I| = {orth[i]:.2e}, "
+            f"det = {det[i]:.6f}); give proper rotation matrices (orthonormalise them)"
+        )
+    # project to SO(3) exactly (removes ~1e-12 rounding so that inverses are exact)
+    U, _, Vt = np.linalg.svd(R)
+    P = P.copy()
+    P[:, :3, :3] = U @ Vt
+    return P
+
+
+def _noise_cov_A(sigma, n: int) -> np.ndarray | None:
+    """Sigma_A as (n, 6, 6) or None (no robot noise model given)."""
+    if sigma is None:
+        return None
+    if hasattr(sigma, "cov"):
+        sigma = sigma.cov
+    if isinstance(sigma, dict):
+        try:
+            sigma = (float(sigma["translation_mm"]), float(sigma["rotation_rad"]))
+        except (KeyError, TypeError, ValueError):
+            raise CalibrationError("sigma: expected keys translation_mm and rotation_rad with numbers") from None
+    s = np.asarray(sigma, dtype=float)
+    if s.shape == (2,):
+        if np.any(s < 0):
+            raise CalibrationError("sigma: translation_mm and rotation_rad must be >= 0")
+        C = np.diag([s[0] ** 2] * 3 + [s[1] ** 2] * 3)
+        return np.broadcast_to(C, (n, 6, 6)).copy()
+    if s.shape == (6, 6):
+        return np.broadcast_to(s, (n, 6, 6)).copy()
+    if s.shape == (n, 6, 6):
+        return s.copy()
+    raise CalibrationError(
+        f"sigma: expected (translation_mm, rotation_rad), a 6x6 covariance or one per pose, got shape {s.shape}"
+    )
+
+
+def _noise_cov_B(cov_B, n: int) -> np.ndarray | None:
+    if cov_B is None:
+        return None
+    c = np.asarray(cov_B, dtype=float)
+    if c.shape == (6, 6):
+        return np.broadcast_to(c, (n, 6, 6)).copy()
+    if c.shape == (n, 6, 6):
+        return c.copy()
+    raise CalibrationError(f"cov_B: expected a 6x6 covariance or one per pose ({n}, 6, 6), got shape {c.shape}")
+
+
+def residual_covariances(X, n: int, sigma=None, cov_B=None) -> np.ndarray:
+    """Sigma_i = Sigma_B,i + Ad_{X^-1} Sigma_A Ad_{X^-1}^T, (n, 6, 6), (mm, rad)^2."""
+    SA = _noise_cov_A(sigma, n)
+    SB = _noise_cov_B(cov_B, n)
+    S = np.zeros((n, 6, 6))
+    if SA is not None:
+        Ad = adjoint(invert_poses(X))
+        S += Ad @ SA @ Ad.T
+    if SB is not None:
+        S += SB
+    return S
+
+
+def _whiteners(S: np.ndarray, where: str) -> np.ndarray:
+    """W_i with W_i^T W_i = S_i^-1 (inverse Cholesky factors), (n, 6, 6)."""
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        raise CalibrationError(
+            f"{where}: the combined pose-noise covariance is not positive definite; give sigma for A "
+            "(translation_mm and rotation_rad > 0) and/or a full-rank cov_B"
+        ) from None
+    return np.linalg.inv(L)
+
+
+# ----------------------------------------------------------------------------- residuals & Jacobian
+
+
+def _residuals(A, B, X, Z) -> np.ndarray:
+    """e_i = log((Z B_i)^-1 A_i X), (n, 6) in (mm, rad), in {O} axes."""
+    E = invert_poses(Z @ B) @ A @ X
+    return _log(E)
+
+
+def handeye_jacobian(B) -> np.ndarray:
+    """d e / d (xi_X, xi_Z) at E = I: block rows [I, -Ad_{B_i^-1}], shape (n, 6, 12)."""
+    B = np.asarray(B, dtype=float)
+    n = B.shape[0]
+    J = np.zeros((n, 6, 12))
+    J[:, :, :6] = np.eye(6)
+    J[:, :, 6:] = -adjoint(invert_poses(B))
+    return J
+
+
+def handeye_fisher(B, X, sigma=None, cov_B=None) -> np.ndarray:
+    """Fisher information (12x12) of (xi_X, xi_Z) given lens poses B (n,4,4), grasp X and
+    the noise model; its inverse is the Cramer-Rao bound in the right-perturbation
+    convention (mm, rad)."""
+    B = np.asarray(B, dtype=float)
+    n = B.shape[0]
+    W = _whiteners(residual_covariances(X, n, sigma, cov_B), "noise model")
+    Jw = (W @ handeye_jacobian(B)).reshape(-1, 12)
+    return Jw.T @ Jw
+
+
+# ----------------------------------------------------------------------------- closed forms
+
+
+def _project_so3(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _vec(M):  # column-major vec
+    return M.T.reshape(-1)
+
+
+def _unvec(v):
+    return v.reshape(3, 3).T
+
+
+def _solve_translations(A, B, RX, RZ):
+    """Least squares for t_X, t_Z given rotations: R_A t_X - t_Z = R_Z t_B - t_A."""
+    n = A.shape[0]
+    M = np.zeros((3 * n, 6))
+    M[:, :3] = A[:, :3, :3].reshape(3 * n, 3)
+    M[:, 3:] = np.tile(-np.eye(3), (n, 1))
+    rhs = (np.einsum("ij,nj->ni", RZ, B[:, :3, 3]) - A[:, :3, 3]).reshape(-1)
+    sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    X = np.eye(4)
+    Z = np.eye(4)
+    X[:3, :3], X[:3, 3] = RX, sol[:3]
+    Z[:3, :3], Z[:3, 3] = RZ, sol[3:]
+    return X, Z
+
+
+def _scaled_rotation(v):
+    M = _unvec(v)
+    d = np.linalg.det(M)
+    # degenerate motion can leave det ~ 0; the projection still returns a rotation and
+    # the observability check reports the ambiguity
+    return _project_so3(M if d == 0 else np.sign(d) * M)
+
+
+def _shah(A, B):
+    """Shah 2013: R_X = R_A^T R_Z R_B  =>  n vec(R_X) = K vec(R_Z), K = sum R_B^T (x) R_A^T
+    (column-major vec); the top singular pair of K gives vec R_X and vec R_Z."""
+    RA, RB = A[:, :3, :3], B[:, :3, :3]
+    K = np.einsum("nji,nlk->nikjl", RB, RA).reshape(-1, 9, 9).sum(axis=0)
+    # kron(P, Q)[3i+k, 3j+l] = P[i,j] Q[k,l] with P = R_B^T, Q = R_A^T
+    U, s, Vt = np.linalg.svd(K)
+    RX = _scaled_rotation(U[:, 0])
+    RZ = _scaled_rotation(Vt[0])
+    return _solve_translations(A, B, RX, RZ)
+
+
+def _li(A, B):
+    """Li 2010 (Kronecker form): one linear system in (vec R_X, vec R_Z, t_X, t_Z)
+    from both the rotation and translation parts, then projection onto SO(3) and
+    the translations re-solved with the projected rotations."""
+    n = A.shape[0]
+    RA, RB = A[:, :3, :3], B[:, :3, :3]
+    tA, tB = A[:, :3, 3], B[:, :3, 3]
+    s = max(np.sqrt(np.mean(np.sum(tA**2, axis=1))), np.sqrt(np.mean(np.sum(tB**2, axis=1))), 1.0)
+    # translations scaled by s (numerical conditioning only; exact data stay exact)
+    I3 = np.eye(3)
+    M = np.zeros((n, 12, 24))
+    rhs = np.zeros((n, 12))
+    M[:, :9, 0:9] = np.einsum("ij,nkl->nikjl", I3, RA).reshape(n, 9, 9)  # I (x) R_A
+    M[:, :9, 9:18] = -np.einsum("nji,kl->nikjl", RB, I3).reshape(n, 9, 9)  # R_B^T (x) I
+    M[:, 9:, 9:18] = -np.einsum("nj,kl->nkjl", tB / s, I3).reshape(n, 3, 9)  # t_B^T (x) I
+    M[:, 9:, 18:21] = RA
+    M[:, 9:, 21:24] = -I3
+    rhs[:, 9:] = -tA / s
+    M = M.reshape(12 * n, 24)
+    rhs = rhs.reshape(-1)
+    sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    RX = _scaled_rotation(sol[0:9])
+    RZ = _scaled_rotation(sol[9:18])
+    return _solve_translations(A, B, RX, RZ)
+
+
+_CLOSED_FORMS = {"shah": _shah, "li": _li}
+
+
+# ----------------------------------------------------------------------------- observability
+
+
+_AXIS_NAMES = ("x", "y", "z")
+
+
+def _describe_dir(v: np.ndarray, frame: str) -> str:
+    v = v / np.linalg.norm(v)
+    k = int(np.argmax(np.abs(v)))
+    if abs(v[k]) > 0.99:
+        sign = "" if v[k] > 0 else "-"
+        extra = " (the optical axis)" if frame == "{S}" and k == 2 else ""
+        return f"{frame} {sign}{_AXIS_NAMES[k]}{extra}"
+    return f"{frame} direction [{v[0]:+.2f}, {v[1]:+.2f}, {v[2]:+.2f}]"
+
+
+def _name_null_vector(v: np.ndarray, length_mm: float) -> str:
+    """Human-readable name of a null direction v = (xi_X, xi_Z) (physical units); a
+    rotation part smaller than 10 % of the translation part over length_mm is ignored."""
+    xr, xw, zr, zw = v[0:3], v[3:6], v[6:9], v[9:12]
+    nz_w = np.linalg.norm(zw)
+    nx_w = np.linalg.norm(xw)
+    if nz_w * length_mm < 0.1 * np.linalg.norm(zr):
+        zpart = f"translation of Z along {_describe_dir(zr, '{S}')}"
+    else:
+        u = zw / nz_w
+        # a twist (rho, omega) is a rotation about the line through p = omega x rho / |omega|^2
+        p = np.cross(zw, zr) / nz_w**2
+        pitch = float(zr @ zw) / nz_w**2
+        zpart = f"rotation of Z about {_describe_dir(u, '{S}')} through [{p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}] mm in {{S}}"
+        if abs(pitch) > 0.1 * length_mm:
+            zpart += f" with {pitch:.3g} mm/rad translation along it"
+    if nx_w * length_mm < 0.1 * np.linalg.norm(xr):
+        xpart = f"translation of X along {_describe_dir(xr, '{O}')}"
+    else:
+        xpart = f"rotation of X about {_describe_dir(xw / nx_w, '{O}')}"
+    return f"{zpart} coupled with {xpart}"
+
+
+def _null_basis_names(N: np.ndarray, length_mm: float) -> list[str]:
+    """Names for a basis of the null space N (12 x k, physical units): first the
+    combinations without Z rotation (aligned with the {S} axes where possible), then
+    rotations with those translations projected out."""
+    k = N.shape[1]
+    if k == 0:
+        return []
+    Nm = N.copy()
+    Nm[3:6] *= length_mm
+    Nm[9:12] *= length_mm  # rotations as displacements over length_mm
+    _, s, Vt = np.linalg.svd(Nm[9:12, :] / np.linalg.norm(Nm, axis=0))
+    s = np.concatenate([s, np.zeros(k - s.size)])
+    is_rot = s > 0.01
+    trans = N @ Vt[~is_rot].T
+    rot = N @ Vt[is_rot].T
+    if trans.shape[1] == 3:
+        trans = trans @ np.linalg.solve(trans[6:9, :], np.eye(3))
+    names = [_name_null_vector(trans[:, j], length_mm) for j in range(trans.shape[1])]
+    for j in range(rot.shape[1]):
+        v = rot[:, j].copy()
+        if trans.shape[1]:
+            # remove translation along the rotation axis (a pitch) when translations are null too
+            u = v[9:12] / np.linalg.norm(v[9:12])
+            for t in trans.T:
+                tz = t[6:9] / np.linalg.norm(t[6:9])
+                if abs(tz @ u) > 0.9:
+                    v = v - (v[6:9] @ tz) / (t[6:9] @ tz) * t
+        names.append(_name_null_vector(v, length_mm))
+    return names
+
+
+def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
+    """Observability of (X, Z) from lens poses B: singular values of the whitened
+    Jacobian (physical units 1/mm, 1/rad), relative singular values of its column-
+    equilibrated form, the tolerance used, `observable` and named null directions."""
+    B = np.asarray(B, dtype=float)
+    n = B.shape[0]
+    if S is None:
+        S = residual_covariances(X, n, sigma, cov_B)
+    W = _whiteners(S, "noise model")
+    Jw = (W @ handeye_jacobian(B)).reshape(-1, 12)
+    sv_phys = np.linalg.svd(Jw, compute_uv=False)
+    d = np.linalg.norm(Jw, axis=0)
+    d[d == 0] = 1.0
+    _, s, Vt = np.linalg.svd(Jw / d, full_matrices=True)
+    rel = s / s[0]
+    # rotation noise level (rad) of the residuals: max over poses of the largest
+    # eigenvalue of the rotation block
+    sig_rot = float(np.sqrt(np.max(np.linalg.eigvalsh(S[:, 3:, 3:]))))
+    tol = max(_RTOL_ABS, _NOISE_FACTOR * sig_rot)
+    null = rel < tol
+    N = (Vt[null].T) / d[:, None]  # back to physical units
+    if N.shape[1]:
+        N = N / np.linalg.norm(N, axis=0)
+    length = max(float(np.sqrt(np.mean(np.sum(B[:, :3, 3] ** 2, axis=1)))), 10.0)
+    names = _null_basis_names(N, length) if N.shape[1] else []
+    return {
+        "singular_values": sv_phys,
+        "relative_singular_values": rel,
+        "tolerance": tol,
+        "observable": not bool(null.any()),
+        "null_space": N,
+        "null_directions": tuple(names),
+    }
+
+
+# ----------------------------------------------------------------------------- result
+
+
+@dataclass(frozen=True)
+class HandEyeResult:
+    """Solution of A_i X = Z B_i.
+
+    X = ^E T_O, Z = ^W T_S (4x4, mm). cov_X, cov_Z: 6x6 covariances of the right
+    perturbations xi = (rho mm, omega rad) of X (in {O} axes) and Z (in {S} axes),
+    from the Gauss-Newton information at the solution (the Cramer-Rao bound of the
+    noise model; for closed-form methods this is the bound, not their own spread);
+    cov: the full 12x12 (X first, then Z). residuals: (n, 6) e_i = log((Z B_i)^-1 A_i X)
+    in (mm, rad); residual_chi2: e_i^T Sigma_i^-1 e_i per pose; chi2_dof =
+    sum residual_chi2 / (6 n - 12). noise_model: "given" or "estimated" (no sigma and
+    no cov_B: isotropic translation/rotation variances estimated from the closed-form
+    residuals, so chi2_dof is ~1 by construction).
+    """
+
+    X: np.ndarray
+    Z: np.ndarray
+    cov_X: np.ndarray
+    cov_Z: np.ndarray
+    cov: np.ndarray
+    residuals: np.ndarray
+    residual_chi2: np.ndarray
+    chi2: float
+    dof: int
+    chi2_dof: float
+    singular_values: np.ndarray
+    relative_singular_values: np.ndarray
+    observable: bool
+    null_directions: tuple
+    method: str
+    start_method: str
+    iterations: int
+    converged: bool
+    noise_model: str
+    warnings: tuple = field(default=())
+
+    @property
+    def std_X(self) -> np.ndarray:
+        """1-sigma of xi_X (mm, mm, mm, rad, rad, rad)."""
+        return np.sqrt(np.diag(self.cov_X))
+
+    @property
+    def std_Z(self) -> np.ndarray:
+        """1-sigma of xi_Z (mm, mm, mm, rad, rad, rad)."""
+        return np.sqrt(np.diag(self.cov_Z))
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict with the CLI's stable keys."""
+        return {
+            "method": self.method,
+            "start_method": self.start_method,
+            "X": self.X.tolist(),
+            "Z": self.Z.tolist(),
+            "cov_X": self.cov_X.tolist(),
+            "cov_Z": self.cov_Z.tolist(),
+            "std_X": self.std_X.tolist(),
+            "std_Z": self.std_Z.tolist(),
+            "perturbation": "right: T*P(xi), xi=(t_mm, rotvec_rad); X in {O} axes, Z in {S} axes",
+            "chi2_dof": float(self.chi2_dof),
+            "dof": int(self.dof),
+            "residuals": self.residuals.tolist(),
+            "residual_chi2": self.residual_chi2.tolist(),
+            "observable": bool(self.observable),
+            "null_directions": list(self.null_directions),
+            "singular_values": self.singular_values.tolist(),
+            "iterations": int(self.iterations),
+            "converged": bool(self.converged),
+            "noise_model": self.noise_model,
+            "warnings": list(self.warnings),
+        }
+
+
+# ----------------------------------------------------------------------------- solver
+
+
+def _cost(A, B, X, Z, Wh):
+    e = _residuals(A, B, X, Z)
+    r = np.einsum("nij,nj->ni", Wh, e)
+    return float(np.sum(r * r))
+
+
+def _jr_inv_batch(r: np.ndarray, left: bool = False) -> np.ndarray:
+    """Inverse right (or left) Jacobians of SO(3) for rotation vectors r (n, 3)."""
+    th = np.linalg.norm(r, axis=1)
+    K = _skew(-r if left else r)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
+                 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
+    return np.eye(3) + 0.5 * K + c[:, None, None] * (K @ K)
+
+
+def _param_jac(xi: np.ndarray) -> np.ndarray:
+    """J_P(xi): P(xi + d) = P(xi) P(J_P(xi) d) to first order (6x6)."""
+    M = np.zeros((6, 6))
+    M[:3, :3] = _exp(xi)[:3, :3].T
+    M[3:, 3:] = _right_jacobian_so3(xi[3:])
+    return M
+
+
+def _refine(A, B, X0, Z0, Wh, max_nfev):
+    """Weighted least squares in the local parametrisation X = X0 P(p_X), Z = Z0 P(p_Z),
+    with the exact analytic Jacobian of e_i = log((Z B_i)^-1 A_i X)."""
+    n = A.shape[0]
+    AdBinv = adjoint(invert_poses(B))
+
+    def fun(p):
+        X = X0 @ _exp(p[:6])
+        Z = Z0 @ _exp(p[6:])
+        return np.einsum("nij,nj->ni", Wh, _residuals(A, B, X, Z)).reshape(-1)
+
+    def jac(p):
+        X = X0 @ _exp(p[:6])
+        Z = Z0 @ _exp(p[6:])
+        E = invert_poses(Z @ B) @ A @ X
+        e = _log(E)
+        Jx = np.zeros((n, 6, 6))
+        Jx[:, :3, :3] = E[:, :3, :3]
+        Jx[:, 3:, 3:] = _jr_inv_batch(e[:, 3:])
+        Jx = Jx @ _param_jac(p[:6])
+        L = np.zeros((n, 6, 6))
+        L[:, :3, :3] = np.eye(3)
+        L[:, :3, 3:] = -_skew(e[:, :3])
+        L[:, 3:, 3:] = _jr_inv_batch(e[:, 3:], left=True)
+        Jz = -(L @ AdBinv) @ _param_jac(p[6:])
+        J = np.concatenate([Jx, Jz], axis=2)
+        return (Wh @ J).reshape(-1, 12)
+
+    sol = least_squares(fun, np.zeros(12), jac=jac, method="lm", xtol=1e-12, ftol=1e-12,
+                        gtol=1e-12, max_nfev=max_nfev)
+    return X0 @ _exp(sol.x[:6]), Z0 @ _exp(sol.x[6:]), sol
+
+
+def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degenerate: str = "raise",
+                  max_outer: int = 4, max_nfev: int = 2000) -> HandEyeResult:
+    """Solve A_i X = Z B_i for X = ^E T_O and Z = ^W T_S.
+
+    A: (n, 4, 4) flange poses ^W T_E (mm); B: (n, 4, 4) lens poses ^S T_O (mm); n >= 3.
+    method: "ml" (maximum likelihood over SE(3) x SE(3), started from the better of
+    Shah and Li by the weighted cost), "shah" or "li" (closed forms).
+    sigma: robot pose noise of A: (translation_mm, rotation_rad) isotropic, a dict with
+    those keys, a 6x6 covariance, one per pose (n, 6, 6), or an object with ``.cov``
+    (robot.RobotNoise). cov_B: lens-pose covariance, one 6x6 or (n, 6, 6), in the
+    right-perturbation convention (the pose estimator's covariance at x ~ 0; see
+    ``pose_vector_cov_to_right``). With neither, the noise is estimated from the data.
+    on_degenerate: "raise" (CalibrationError naming the null directions) or "warn"
+    (return with observable=False, warnings set and a RuntimeWarning).
+    Raises CalibrationError for malformed input, fewer than 3 poses or (by default)
+    degenerate motion.
+    """
+    if method not in METHODS:
+        raise CalibrationError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    if on_degenerate not in ("raise", "warn"):
+        raise CalibrationError("on_degenerate: use 'raise' or 'warn'")
+    A = _as_poses(A, "A")
+    B = _as_poses(B, "B")
+    n = A.shape[0]
+    if B.shape[0] != n:
+        raise CalibrationError(f"A and B: need the same number of poses, got {n} and {B.shape[0]}")
+    if n < 3:
+        raise CalibrationError(f"A, B: need at least 3 pose pairs with rotations about different axes, got {n}")
+
+    candidates = {}
+    for name, f in _CLOSED_FORMS.items():
+        if method in (name, "ml"):
+            with np.errstate(all="ignore"):
+                candidates[name] = f(A, B)
+
+    noise_given = sigma is not None or cov_B is not None
+    if noise_given:
+        def covs(X):
+            return residual_covariances(X, n, sigma, cov_B)
+    else:
+        # isotropic translation / rotation variances from the closed-form residuals
+        ref = min(candidates.values(), key=lambda XZ: float(np.sum(_residuals(A, B, *XZ) ** 2 * [1, 1, 1, 1e6, 1e6, 1e6])))
+        e = _residuals(A, B, *ref)
+        dof = max(6 * n - 12, 1)
+        vt = max(float(np.sum(e[:, :3] ** 2)) / (dof / 2), 1e-24)
+        vr = max(float(np.sum(e[:, 3:] ** 2)) / (dof / 2), 1e-24)
+        S_est = np.broadcast_to(np.diag([vt] * 3 + [vr] * 3), (n, 6, 6)).copy()
+
+        def covs(X):
+            return S_est
+
+    # pick the start (or the closed form asked for)
+    scored = []
+    for name, (X, Z) in candidates.items():
+        Wh = _whiteners(covs(X), "noise model")
+        scored.append((_cost(A, B, X, Z, Wh), name, X, Z))
+    scored.sort(key=lambda s: s[0])
+    _, start, X, Z = scored[0]
+
+    warns = []
+    obs = observability(B, X, S=covs(X))
+    if not obs["observable"]:
+        msg = ("degenerate motion: unobservable " + "; ".join(obs["null_directions"])
+               + ". Add poses with rotations about at least two non-parallel axes")
+        if on_degenerate == "raise":
+            raise CalibrationError("A, B: " + msg)
+        warns.append(msg)
+        _warnings.warn(msg, RuntimeWarning, stacklevel=2)
+
+    iterations = 0
+    converged = True
+    if method == "ml":
+        converged = False
+        for _ in range(max_outer):
+            Wh = _whiteners(covs(X), "noise model")
+            X_new, Z_new, sol = _refine(A, B, X, Z, Wh, max_nfev)
+            iterations += int(sol.nfev)
+            step = np.abs(_log(invert_poses(np.stack([X, Z])) @ np.stack([X_new, Z_new]))).max()
+            X, Z = X_new, Z_new
+            converged = sol.status > 0
+            if not noise_given or sigma is None or step < 1e-8:
+                break  # weights do not depend on X then
+        if not converged:
+            warns.append("ml: the optimiser stopped before converging")
+
+    S = covs(X)
+    Wh = _whiteners(S, "noise model")
+    e = _residuals(A, B, X, Z)
+    r = np.einsum("nij,nj->ni", Wh, e)
+    chi2_i = np.sum(r * r, axis=1)
+    dof = 6 * n - 12
+    obs = observability(B, X, S=S)
+    if not obs["observable"] and not warns:
+        msg = "degenerate motion: unobservable " + "; ".join(obs["null_directions"])
+        if on_degenerate == "raise":
+            raise CalibrationError("A, B: " + msg)
+        warns.append(msg)
+    Jw = (Wh @ handeye_jacobian(B)).reshape(-1, 12)
+    F = Jw.T @ Jw
+    cov = np.linalg.pinv(F, rcond=1e-14, hermitian=True) if not obs["observable"] else np.linalg.inv(F)
+    cov = 0.5 * (cov + cov.T)
+    return HandEyeResult(
+        X=X, Z=Z, cov_X=cov[:6, :6].copy(), cov_Z=cov[6:, 6:].copy(), cov=cov,
+        residuals=e, residual_chi2=chi2_i, chi2=float(chi2_i.sum()), dof=dof,
+        chi2_dof=float(chi2_i.sum() / dof) if dof > 0 else float("nan"),
+        singular_values=obs["singular_values"], relative_singular_values=obs["relative_singular_values"],
+        observable=obs["observable"], null_directions=obs["null_directions"],
+        method=method, start_method=start, iterations=iterations,
+        converged=converged, noise_model="given" if noise_given else "estimated", warnings=tuple(warns),
+    )
