@@ -476,7 +476,7 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
     sv_phys = np.linalg.svd(Jw, compute_uv=False)
     d = np.linalg.norm(Jw, axis=0)
     d[d == 0] = 1.0
-    _, s, Vt = np.linalg.svd(Jw / d, full_matrices=True)
+    _, s, Vt = np.linalg.svd(Jw / d, full_matrices=False)
     rel = s / s[0]
     # rotation noise level (rad) of the residuals: max over poses of the largest
     # eigenvalue of the rotation block
@@ -513,7 +513,12 @@ class HandEyeResult:
     in (mm, rad); residual_chi2: e_i^T Sigma_i^-1 e_i per pose; chi2_dof =
     sum residual_chi2 / (6 n - 12). noise_model: "given" or "estimated" (no sigma and
     no cov_B: isotropic translation/rotation variances estimated from the closed-form
-    residuals, so chi2_dof is ~1 by construction).
+    residuals, so chi2_dof is ~1 by construction). method: the method asked for;
+    start_method: the closed form used (for "ml", the better of Shah and Li by the
+    weighted cost). observable / null_directions: see ``observability``; a direction
+    is unobservable when its relative singular value (column-equilibrated whitened
+    Jacobian) is below max(1e-9, 10 x the residual rotation noise in rad).
+    iterations: residual evaluations of the ML refinement (0 for closed forms).
     """
 
     X: np.ndarray
