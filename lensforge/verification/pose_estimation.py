@@ -331,7 +331,7 @@ def _ukf(prob: _Whitened, x0, P0, Q, R, repeats: int, alpha: float, beta: float,
 def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = "lm", *, prior_cov=None,
                         ukf_repeats: int = 12, ukf_alpha: float = 0.5, ukf_beta: float = 2.0,
                         ukf_kappa: float = 0.0, ukf_process_cov=None, jac: str = "central",
-                        max_iter: int = 50, tol: float = 1e-10, on_rank_loss: str = "warn") -> PoseEstimate:
+                        max_iter: int = 50, tol: float = 1e-8, on_rank_loss: str = "warn") -> PoseEstimate:
     """:func:`estimate_pose` on a prepared ForwardModel (reuse it across many estimates)."""
     bench = model.bench
     m = len(model.modes)
@@ -420,7 +420,7 @@ def estimate_pose(bench: Bench, lens: Lens, z_measured, x0=None, method: str = "
     (default nominal). Options: prior_cov (ukf prior, default from
     ``initial_poses``), ukf_repeats (12, the paper's), ukf_alpha/beta/kappa
     (0.5, 2, 0), ukf_process_cov (zero: static state), jac ("central" or
-    "forward"), max_iter (50 function evaluations), tol (1e-10),
+    "forward"; forward halves the cost per iteration), max_iter (50 function evaluations), tol (1e-8),
     on_rank_loss ("warn" or "raise").
     Raises ConfigError (bad inputs), PoseRangeError (x0 outside the bench's range),
     PupilError (pupil not lit at x0), RankError (rank loss with on_rank_loss="raise").
