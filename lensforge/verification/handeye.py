@@ -41,7 +41,6 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from ..errors import CalibrationError
-from ..optics.pose import matrix_to_pose, pose_to_matrix
 
 __all__ = [
     "HandEyeResult",
