@@ -28,6 +28,7 @@ import json
 import os
 import sqlite3
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -36,7 +37,7 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["TrialStore", "config_hash", "trial_seeds", "run_trials", "RunStats", "SINGLE_THREAD_ENV"]
+__all__ = ["TrialStore", "config_hash", "trial_seeds", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV"]
 
 STORE_SCHEMA = 1
 
@@ -195,12 +196,14 @@ def run_trials(
     scheduler: str | None = None,
     progress: bool = True,
     description: str = "",
+    client=None,
 ) -> tuple[dict[int, dict], RunStats]:
     """Run ``trial_fn(context, i, seedseq_i) -> dict`` for i < n_trials; returns (records, stats).
 
     trial_fn must be a module-level function (it is pickled to workers) and return a
     JSON-able dict; records already in ``store`` are not run again. An exception
-    in a trial stops the study (finished trials stay in the store).
+    in a trial stops the study (finished trials stay in the store). ``client``: an
+    open ``distributed.Client`` to reuse (see :func:`dask_client`), left open.
     """
     n_trials = int(n_trials)
     if n_trials < 0:
@@ -219,7 +222,10 @@ def run_trials(
         records[i] = rec
 
     prog, task = _progress(progress, n_trials, n_resumed, description)
-    mode = "serial" if (scheduler is None and workers == 0) else ("scheduler" if scheduler else "local")
+    if client is not None:
+        mode = "client"
+    else:
+        mode = "serial" if (scheduler is None and workers == 0) else ("scheduler" if scheduler else "local")
     n_workers = 0
     with prog:
         if not todo:
@@ -228,17 +234,26 @@ def run_trials(
             for i in todo:
                 finish(i, trial_fn(context, i, seeds[i]))
                 prog.advance(task)
+        elif client is not None:
+            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
         else:
-            n_workers = _run_dask(trial_fn, context, todo, seeds, finish, workers, scheduler,
-                                  lambda: prog.advance(task))
+            with dask_client(workers, scheduler) as cl:
+                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
     stats = RunStats(len(todo), n_resumed, time.perf_counter() - t0, mode, n_workers)
     return {i: records[i] for i in sorted(records)}, stats
 
 
-def _run_dask(trial_fn, context, todo, seeds, finish, workers, scheduler, advance) -> int:
+@contextmanager
+def dask_client(workers: int | None = None, scheduler: str | None = None):
+    """A distributed.Client: to ``scheduler`` if given, else a LocalCluster of
+    ``workers`` single-threaded processes (default: all cores); None when
+    workers == 0 and no scheduler (run in process). Closed on exit."""
     import logging
 
-    from distributed import Client, LocalCluster, as_completed
+    if scheduler is None and workers == 0:
+        yield None
+        return
+    from distributed import Client, LocalCluster
 
     cluster = None
     if scheduler:
@@ -255,19 +270,30 @@ def _run_dask(trial_fn, context, todo, seeds, finish, workers, scheduler, advanc
         client = Client(cluster)
     try:
         client.run(_pin_threads)
-        n_workers = len(client.scheduler_info().get("workers", {}))
-        ctx = client.scatter(context, broadcast=True)
-        futures = {}
-        for i in todo:
-            f = client.submit(trial_fn, ctx, i, seeds[i], key=f"trial-{i}-{os.getpid()}-{id(futures)}", pure=False)
-            futures[f] = i
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _submit_all(client, trial_fn, context, todo, seeds, finish, advance) -> int:
+    from distributed import as_completed
+
+    n_workers = len(client.scheduler_info().get("workers", {}))
+    ctx = client.scatter(context, broadcast=True)
+    futures = {}
+    tag = f"{os.getpid()}-{time.monotonic_ns()}"
+    for i in todo:
+        f = client.submit(trial_fn, ctx, i, seeds[i], key=f"trial-{i}-{tag}", pure=False)
+        futures[f] = i
+    try:
         for fut in as_completed(futures):
             i = futures.pop(fut)
             finish(i, fut.result())
             advance()
             fut.release()
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        for f in futures:
+            f.cancel()
     return n_workers
