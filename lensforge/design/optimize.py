@@ -172,12 +172,19 @@ class DesignProblem:
         self.history.append(row)
 
     # starts -----------------------------------------------------------------
-    def random_feasible_start(self, rng: np.random.Generator, tries: int = _MAX_START_TRIES) -> np.ndarray:
-        """A uniformly drawn feasible point of the unit box (DesignError if none in ``tries``)."""
+    def random_feasible_start(self, rng: np.random.Generator, tries: int = _MAX_START_TRIES,
+                              shrink: float = 0.97) -> np.ndarray:
+        """A random feasible point of the unit box (DesignError if none in ``tries``).
+
+        Draws uniformly in a box around the centre of the bounds whose half-width starts
+        at the full box and shrinks by ``shrink`` per rejected draw: feasible regions
+        can be a small part of the bounds (strong surfaces break the thickness and
+        pupil constraints), while the centre is usually a mild lens.
+        """
         seen = Counter()
         first = {}
-        for _ in range(tries):
-            u = rng.random(self.par.n)
+        for i in range(tries):
+            u = 0.5 + shrink**i * (rng.random(self.par.n) - 0.5)
             cost, f, m = self.evaluate_p(self.par.from_unit(u))
             if cost < INFEASIBLE:
                 return u
@@ -216,6 +223,17 @@ def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
 
 # --- the four optimisers -------------------------------------------------------
 
+def _initial_population(rng, u0, k: int, spread: float = 0.1) -> np.ndarray:
+    """k points of the unit box: the feasible start, half of the rest scattered around it
+    (normal, sd ``spread``; feasible regions can be small), the others uniform."""
+    n = len(u0)
+    X = rng.random((k, n))
+    X[0] = u0
+    near = (k - 1) // 2
+    X[1:1 + near] = np.clip(u0 + spread * rng.standard_normal((near, n)), 0.0, 1.0)
+    return X
+
+
 def _run_nelder_mead(prob: DesignProblem, starts: list, opts: dict) -> dict:
     from scipy.optimize import minimize
 
@@ -229,7 +247,7 @@ def _run_nelder_mead(prob: DesignProblem, starts: list, opts: dict) -> dict:
             v = u0.copy()
             v[i] = v[i] + step if v[i] + step <= 1.0 else v[i] - step
             simplex.append(v)
-        f0 = max(abs(prob(u0)), 1.0)
+        f0 = max(abs(prob.best_cost), 1.0) if prob.best_cost < INFEASIBLE else 1.0
         budget_end = min(prob.max_evals, prob.n_evals + per - 1)
         try:
             minimize(lambda u: prob(u) if prob.n_evals < budget_end else _raise_stop(), u0, method="Nelder-Mead",
@@ -257,8 +275,7 @@ def _run_pso(prob: DesignProblem, u0, rng, opts: dict) -> dict:
     n = prob.par.n
     particles = int(opts.get("particles", 30))
     iters = max(1, (prob.max_evals - prob.n_evals) // particles)
-    init = rng.random((particles, n))
-    init[0] = u0
+    init = _initial_population(rng, u0, particles)
     # Clerc-Kennedy constriction coefficients (w = 0.7298, c1 = c2 = 1.49618)
     options = {"c1": float(opts.get("c1", 1.49618)), "c2": float(opts.get("c2", 1.49618)),
                "w": float(opts.get("w", 0.7298))}
@@ -280,8 +297,7 @@ def _run_ga(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
 
     n = prob.par.n
     pop = int(opts.get("population", 30))
-    X0 = rng.random((pop, n))
-    X0[0] = u0
+    X0 = _initial_population(rng, u0, pop)
 
     class _P(Problem):
         def __init__(self):
@@ -302,7 +318,7 @@ def _run_ga(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
 def _run_cmaes(prob: DesignProblem, u0, seed: int, opts: dict) -> dict:
     import cma
 
-    sigma0 = float(opts.get("sigma0", 0.2))
+    sigma0 = float(opts.get("sigma0", 0.1))
     cma_seed = int(np.random.SeedSequence(seed).generate_state(1)[0] % (2**31 - 2)) + 1  # cma: 0 means 'time'
     copts = {"seed": cma_seed, "bounds": [0.0, 1.0], "maxfevals": prob.max_evals - prob.n_evals, "verbose": -9,
              "verb_disp": 0, "verb_log": 0, "tolfun": float(opts.get("ftol", 1e-11)), "tolx": float(opts.get("xtol", 1e-8))}
@@ -331,7 +347,7 @@ def _plain_stop(v):
 def optimize_design(bench: Bench | None = None, model: str = "zernike", method: str = "nelder-mead", seed: int = 0,
                     criterion: str = "J", weights=(1.0, 1.0), free=None, bounds=None,
                     constraints: Constraints | None = None, max_evals: int | None = None, start="paper",
-                    n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.2,
+                    n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.1,
                     ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,
                     template: Lens | None = None) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
@@ -376,7 +392,7 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
         prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog)
         u0, start_kind = _start_point(prob, start, rng)
         p_start = par.from_unit(u0)
-        start_cost = prob.evaluate_p(p_start)[0]
+        start_cost = prob(u0)  # counted, so the start is always a candidate
         opts = {"particles": particles, "population": population, "sigma0": sigma0}
         if ftol is not None:
             opts["ftol"] = ftol

@@ -24,8 +24,8 @@ Default bounds (lensforge choices, not from the paper): thickness 3..10 mm;
 curvature +-0.05 1/mm (|R| >= 20 mm); conic +-3; every other coefficient is bounded
 so that its term alone departs at most a *sag budget* from the vertex plane at the
 rim of the clear aperture: 1 mm for piston terms, a slope of 0.2 rad for linear
-(tilt/wedge) terms, 6 mm for quadratic terms (the paper's polynomial lens reaches
-5.5 mm) and 0.5 mm for cubic and higher terms. The paper's vectors lie inside.
+(tilt/wedge) terms, 8 mm for quadratic terms (the back surface of the paper's polynomial
+lens reaches 6.7 mm) and 0.5 mm for cubic and higher terms. The paper's vectors lie inside.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ FREE_PRESETS = {
 
 # sag budgets at the rim of the clear aperture (mm), by total degree of the term
 _SLOPE_BUDGET = 0.2       # rad, linear terms
-_SAG_BUDGET = {0: 1.0, 2: 6.0}
+_SAG_BUDGET = {0: 1.0, 2: 8.0}
 _SAG_BUDGET_HIGH = 0.5    # degree >= 3
 
 _NAME_RE = re.compile(r"^(front|back)\.([a-z_]+)(?:\[(\d+)\])?$")
