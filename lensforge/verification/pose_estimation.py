@@ -31,7 +31,8 @@ at the initial pose with the bench's ``rank_rtol`` (the same test as
 ``metrics``). ``on_rank_loss="warn"`` (default) warns with
 :class:`UnobservableWarning`, estimates only the observable subspace (the
 unobservable directions stay at x0), names them in ``PoseEstimate.unobservable``
-and puts ``inf`` on their covariance diagonal (zero off-diagonal);
+(the DOF each null direction mostly moves) and puts ``inf`` on that DOF's
+covariance diagonal (zero off-diagonal);
 ``on_rank_loss="raise"`` raises :class:`~lensforge.errors.RankError`.
 
 Units: pose (tx, ty, tz) mm, (rx, ry, rz) rad (rotation vector, DESIGN.md);
@@ -238,11 +239,17 @@ def _expand_cov(cov_obs_u: np.ndarray, V: np.ndarray, null: np.ndarray, D: np.nd
     """Covariance in x of an estimate restricted to span(V) (scaled coords); inf on
     the DOF the null space touches."""
     cov = (V @ cov_obs_u @ V.T) * np.outer(D, D)
-    if null.shape[1]:
-        involved = np.any(np.abs(null) > 1e-6, axis=1)
-        cov[involved, :] = 0.0
-        cov[:, involved] = 0.0
-        cov[involved, involved] = np.inf
+    return _mark_unobservable(cov, null)
+
+
+def _mark_unobservable(cov: np.ndarray, null: np.ndarray) -> np.ndarray:
+    """inf variance (zero covariances) on the DOF each null direction mostly moves."""
+    cov = cov.copy()
+    for v in null.T:
+        i = int(np.argmax(np.abs(v)))
+        cov[i, :] = 0.0
+        cov[:, i] = 0.0
+        cov[i, i] = np.inf
     return cov
 
 
@@ -391,12 +398,7 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
         R = model.noise_cov
         x, Py, message = _ukf(prob, x0, P0, Q, R, int(ukf_repeats), ukf_alpha, ukf_beta, ukf_kappa, V, D)
         T = D[:, None] * V
-        cov = T @ Py @ T.T
-        if null.shape[1]:
-            involved = np.any(np.abs(null) > 1e-6, axis=1)
-            cov[involved, :] = 0.0
-            cov[:, involved] = 0.0
-            cov[involved, involved] = np.inf
+        cov = _mark_unobservable(T @ Py @ T.T, null)
         r = prob.residual(x)
         converged = bool(np.all(np.isfinite(r)))
         if not converged:

@@ -1,0 +1,302 @@
+"""Pose-estimation study: the paper's Fig. 5 / Table 2 analogue, with the bound.
+
+For each lens, ``trials`` times: the robot commands the nominal pose, the lens
+really sits at a pose drawn from the gripper/robot uncertainty model
+(``initial_poses``), the sensor measures it with noise, and the estimator starts
+from the commanded pose. Reported per lens: median and standard deviation of the
+translation and rotation error norms (the paper's Table 2 quantities; also the
+paper-style norm of the per-DOF standard deviations), RMSE per DOF over the
+Cramer-Rao bound (the bound averaged over the trials' true poses), the reported
+covariance's honesty (mean NEES / DOF, 1 when honest), mean chi2/dof, and the
+failure rate split into pupil lost (the true pose does not light the pupil, or
+the UKF's sigma points leave it) and no convergence (solver failed or left the
+bench's pose range). Statistics are over the successful trials. Unobservable DOF
+(rank loss, e.g. the spherical lens's rz) are excluded from the error norms and
+have no RMSE/CRLB.
+
+Trials are seeded with SeedSequence(seed).spawn(trials); the same seed gives the
+same true poses and noise for every lens and method (common random numbers).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError, PupilError, TraceError
+from ..optics.bench import Bench, write_atomic
+from ..optics.lens import Lens
+from ..optics.pose import DOF_NAMES
+from ..optics.sensitivity import sensitivity_from_model
+from ..optics.shack_hartmann import ForwardModel
+from .initial_poses import InitialPoseModel, prior_covariance
+from .pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
+
+__all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
+           "SCHEMA_VERSION"]
+
+SCHEMA_VERSION = 1
+OK, PUPIL_LOST, NOT_CONVERGED = "ok", "pupil_lost", "not_converged"
+
+
+@dataclass(frozen=True, eq=False)
+class LensStudy:
+    """Per-trial results of one lens and one method.
+
+    errors: (N, 6) estimate - truth (mm, rad), NaN where the trial failed;
+    true_poses: (N, 6); status: (N,) "ok" | "pupil_lost" | "not_converged";
+    reported_std: (N, 6) the estimator's std (mm, rad); crlb_var: (N, 6) CRLB
+    variances at the true poses (NaN where not computable); chi2, nees: (N,);
+    n_evals: (N,) poses traced; unobservable: DOF names; seconds: wall time.
+    """
+
+    name: str
+    method: str
+    errors: np.ndarray
+    true_poses: np.ndarray
+    status: np.ndarray
+    reported_std: np.ndarray
+    crlb_var: np.ndarray
+    chi2: np.ndarray
+    nees: np.ndarray
+    n_evals: np.ndarray
+    dof: int
+    unobservable: tuple = ()
+    seconds: float = 0.0
+    messages: tuple = field(default_factory=tuple)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == OK
+
+    @property
+    def observable(self) -> np.ndarray:
+        return np.array([n not in self.unobservable for n in DOF_NAMES])
+
+    def _norms(self):
+        e = self.errors[self.ok]
+        obs = self.observable
+        t = np.linalg.norm(e[:, :3] * obs[:3], axis=1)
+        r = np.linalg.norm(e[:, 3:] * obs[3:], axis=1)
+        return t, r
+
+    def summary(self) -> dict:
+        """Table row; translation in um, rotation in urad (keys say so)."""
+        n = len(self.status)
+        ok = self.ok
+        k = int(ok.sum())
+        t, r = self._norms()
+        e = self.errors[ok]
+        nan = float("nan")
+        rmse = np.sqrt(np.mean(e**2, axis=0)) if k else np.full(6, nan)
+        crlb = np.sqrt(np.nanmean(self.crlb_var[ok], axis=0)) if k else np.full(6, nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(self.observable, rmse / crlb, nan)
+        n_obs = int(self.observable.sum())
+        scale = np.array([1e3] * 3 + [1e6] * 3)
+        return {
+            "lens": self.name,
+            "method": self.method,
+            "trials": n,
+            "succeeded": k,
+            "failure_rate": (n - k) / n if n else nan,
+            "pupil_lost": int(np.sum(self.status == PUPIL_LOST)),
+            "not_converged": int(np.sum(self.status == NOT_CONVERGED)),
+            "median_translation_error_um": float(np.median(t) * 1e3) if k else nan,
+            "std_translation_error_um": float(np.std(t, ddof=1) * 1e3) if k > 1 else nan,
+            "median_rotation_error_urad": float(np.median(r) * 1e6) if k else nan,
+            "std_rotation_error_urad": float(np.std(r, ddof=1) * 1e6) if k > 1 else nan,
+            "norm_of_dof_std_translation_um": float(np.linalg.norm(np.std(e[:, :3] * self.observable[:3], axis=0, ddof=1)) * 1e3) if k > 1 else nan,
+            "norm_of_dof_std_rotation_urad": float(np.linalg.norm(np.std(e[:, 3:] * self.observable[3:], axis=0, ddof=1)) * 1e6) if k > 1 else nan,
+            "rmse": {f"{d}_{'um' if i < 3 else 'urad'}": float(rmse[i] * scale[i]) for i, d in enumerate(DOF_NAMES)},
+            "crlb_std": {f"{d}_{'um' if i < 3 else 'urad'}": float(crlb[i] * scale[i]) for i, d in enumerate(DOF_NAMES)},
+            "rmse_over_crlb": {d: float(ratio[i]) for i, d in enumerate(DOF_NAMES)},
+            "mean_nees_per_dof": float(np.mean(self.nees[ok]) / n_obs) if k else nan,
+            "mean_chi2_dof": float(np.mean(self.chi2[ok]) / self.dof) if k and self.dof > 0 else nan,
+            "mean_poses_traced": float(np.mean(self.n_evals[ok])) if k else nan,
+            "ms_per_estimate": 1e3 * self.seconds / n if n else nan,
+            "unobservable": list(self.unobservable),
+        }
+
+
+def _crlb_var(model: ForwardModel, x: np.ndarray) -> np.ndarray:
+    """CRLB variances (6,) at x (NaN if not computable; inf for unobservable DOF)."""
+    S, _, _ = sensitivity_from_model(model, x, raise_invalid=False)
+    if S is None:
+        return np.full(6, np.nan)
+    R = model.noise_cov
+    F = S.T @ np.linalg.solve(R, S)
+    D = np.asarray(model.bench.pose_scales, dtype=float)
+    Fs = F * np.outer(D, D)
+    w, V = np.linalg.eigh(Fs)
+    keep = w > (model.bench.rank_rtol**2) * w[-1]
+    cov = (V[:, keep] / w[keep]) @ V[:, keep].T * np.outer(D, D)
+    var = np.diag(cov).copy()
+    for v in V[:, ~keep].T:  # the DOF each null direction mostly moves is unbounded
+        var[int(np.argmax(np.abs(v)))] = np.inf
+    return var
+
+
+def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, method: str = "lm", seed: int = 0,
+               initial: InitialPoseModel | None = None, commanded=None, **estimator_options) -> LensStudy:
+    """Run ``trials`` seeded estimates of one lens (see module docstring)."""
+    if method not in METHODS:
+        raise ConfigError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    if int(trials) != trials or trials < 1:
+        raise ConfigError(f"trials: expected an integer >= 1, got {trials!r}")
+    initial = initial or InitialPoseModel()
+    c = np.zeros(6) if commanded is None else np.asarray(commanded, dtype=float)
+    model = ForwardModel(bench, lens)
+    m = len(model.modes)
+    opts = dict(estimator_options)
+    if method == "ukf":
+        opts.setdefault("prior_cov", prior_covariance(initial))
+    children = np.random.SeedSequence(seed).spawn(int(trials))
+    N = int(trials)
+    errors = np.full((N, 6), np.nan)
+    truth = np.empty((N, 6))
+    status = np.empty(N, dtype=object)
+    rstd = np.full((N, 6), np.nan)
+    crlb = np.full((N, 6), np.nan)
+    chi2 = np.full(N, np.nan)
+    nees = np.full(N, np.nan)
+    nev = np.zeros(N, dtype=int)
+    msgs = []
+    unobs: tuple = ()
+    dof = m - 6
+    t0 = time.perf_counter()
+    lim = bench.pose_limits
+    for i, child in enumerate(children):
+        rng = np.random.default_rng(child)
+        x = c + rng.normal(size=6) * initial.sigma
+        x[:3] = np.clip(x[:3], -lim.translation_mm, lim.translation_mm)
+        truth[i] = x
+        res = model.evaluate(x[None], check_range=False)
+        if not res.valid[0]:
+            status[i] = PUPIL_LOST
+            msgs.append(f"trial {i}: true pose does not light the pupil: {res.reason(0)}")
+            continue
+        sigma = bench.noise.slope_sigma_urad * 1e-6
+        z = model.pupil.fit(res.slopes[0] + rng.normal(0.0, sigma, res.slopes[0].shape))
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UnobservableWarning)
+                est = estimate_pose_model(model, z, x0=c, method=method, **opts)
+        except (PupilError, TraceError) as e:
+            status[i] = PUPIL_LOST
+            msgs.append(f"trial {i}: {e}")
+            continue
+        nev[i] = est.n_evals
+        unobs = est.unobservable or unobs
+        dof = est.dof
+        if not est.converged:
+            status[i] = NOT_CONVERGED
+            msgs.append(f"trial {i}: {est.message}")
+            continue
+        status[i] = OK
+        errors[i] = est.pose - x
+        rstd[i] = est.std
+        chi2[i] = est.chi2
+        nees[i] = est.nees(x)
+        crlb[i] = _crlb_var(model, x)
+    seconds = time.perf_counter() - t0
+    return LensStudy(name=name, method=method, errors=errors, true_poses=truth, status=status.astype(str),
+                     reported_std=rstd, crlb_var=crlb, chi2=chi2, nees=nees, n_evals=nev, dof=dof,
+                     unobservable=unobs, seconds=seconds, messages=tuple(msgs))
+
+
+def run_estimation_study(bench: Bench, lenses, trials: int = 100, method: str = "lm", seed: int = 0,
+                         initial: InitialPoseModel | None = None, **estimator_options) -> list[LensStudy]:
+    """Study several lenses: ``lenses`` is a mapping name -> Lens or a list of (name, Lens)."""
+    items = list(lenses.items()) if isinstance(lenses, dict) else list(lenses)
+    if not items:
+        raise ConfigError("lenses: give at least one lens")
+    return [study_lens(bench, lens, name, trials, method, seed, initial, **estimator_options) for name, lens in items]
+
+
+def _fmt(v, nd=1):
+    return "n/a" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def format_table(results: list[LensStudy]) -> str:
+    """Plain-text table (translation um, rotation urad)."""
+    head = (f"{'lens':<22}{'method':<7}{'fail':>6}{'med|t| um':>11}{'std|t| um':>11}{'med|r| urad':>13}"
+            f"{'std|r| urad':>13}  RMSE/CRLB tx ty tz rx ry rz{'':>6}{'NEES/dof':>9}{'chi2/dof':>9}{'ms':>7}")
+    lines = [head]
+    for r in results:
+        s = r.summary()
+        ratio = " ".join(_fmt(s["rmse_over_crlb"][d], 2).rjust(4) for d in DOF_NAMES)
+        lines.append(
+            f"{s['lens'][:21]:<22}{s['method']:<7}{100 * s['failure_rate']:>5.0f}%{_fmt(s['median_translation_error_um']):>11}"
+            f"{_fmt(s['std_translation_error_um']):>11}{_fmt(s['median_rotation_error_urad']):>13}"
+            f"{_fmt(s['std_rotation_error_urad']):>13}  {ratio:<32}{_fmt(s['mean_nees_per_dof'], 2):>9}"
+            f"{_fmt(s['mean_chi2_dof'], 2):>9}{_fmt(s['ms_per_estimate'], 0):>7}"
+        )
+    return "\n".join(lines)
+
+
+def study_to_dict(results: list[LensStudy], **meta) -> dict:
+    """JSON-ready study (schema_version, meta, per-lens summary rows)."""
+    def clean(o):
+        if isinstance(o, dict):
+            return {k: clean(v) for k, v in o.items()}
+        if isinstance(o, list):
+            return [clean(v) for v in o]
+        if isinstance(o, float) and not np.isfinite(o):
+            return None
+        return o
+
+    return clean({"schema_version": SCHEMA_VERSION, **meta, "lenses": [r.summary() for r in results]})
+
+
+def plot_study(results: list[LensStudy], path) -> "Path":
+    """Fig. 5-style box plot: per DOF, the error of every lens (um / urad). Written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), constrained_layout=True)
+    labels = [f"{r.name}\n({r.method})" for r in results]
+    for j, ax in enumerate(axes.flat):
+        unit, sc = ("um", 1e3) if j < 3 else ("urad", 1e6)
+        data = []
+        for r in results:
+            e = r.errors[r.ok, j] * sc if DOF_NAMES[j] not in r.unobservable else np.array([])
+            data.append(e if e.size else np.array([np.nan]))
+        ax.boxplot(data, showfliers=True, flierprops={"markersize": 2})
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7, rotation=20)
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        ax.set_title(f"{DOF_NAMES[j]} error ({unit})", fontsize=9)
+        for k, r in enumerate(results):
+            if DOF_NAMES[j] in r.unobservable:
+                ax.text(k + 1, 0, "unobservable", ha="center", va="center", fontsize=6, rotation=90, color="C3")
+    n = len(results[0].status) if results else 0
+    fig.suptitle(f"Pose-estimation error over {n} trials per lens (estimate - truth)", fontsize=10)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120)
+    plt.close(fig)
+    return write_atomic(path, buf.getvalue())
+
+
+def save_study(results: list[LensStudy], out_dir, stem: str = "estimate_study", **meta) -> dict:
+    """Write <stem>.json (summary), <stem>_trials.csv (per trial) and <stem>.png; return paths."""
+    from pathlib import Path
+
+    out = Path(out_dir)
+    d = study_to_dict(results, **meta)
+    pj = write_atomic(out / f"{stem}.json", json.dumps(d, indent=2, allow_nan=False))
+    rows = ["lens,method,trial,status," + ",".join(f"true_{n}" for n in DOF_NAMES) + ","
+            + ",".join(f"err_{n}" for n in DOF_NAMES) + ",chi2,nees"]
+    for r in results:
+        for i in range(len(r.status)):
+            vals = list(r.true_poses[i]) + list(r.errors[i]) + [r.chi2[i], r.nees[i]]
+            rows.append(f"{r.name},{r.method},{i},{r.status[i]}," + ",".join(f"{v:.9g}" for v in vals))
+    pc = write_atomic(out / f"{stem}_trials.csv", "\n".join(rows) + "\n")
+    pp = plot_study(results, out / f"{stem}.png")
+    return {"json": pj, "csv": pc, "png": pp}
