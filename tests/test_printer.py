@@ -38,7 +38,7 @@ def test_fits_and_orientation():
     lens = lf.paper_lens("zernike")
     lm = build_lens_mesh(lens, chord_tol_mm=0.01)
     rep = printability(lens, lm.mesh.vertices, 0.025)
-    assert rep.fits and rep.extents_mm[0] == pytest.approx(lens.edge_diameter)
+    assert rep.fits and rep.extents_mm[0] == pytest.approx(lens.edge_diameter, abs=0.01)
     # nearly flat optical surfaces: layers parallel to the optical axis minimise the cusp height
     assert rep.orientation.tilt_deg == 90.0
     assert rep.orientation.rms_cusp_mm < 0.5 * rep.staircase_axis_vertical[0].rms_cusp_mm
