@@ -116,6 +116,7 @@ class BatchPoseEstimate:
     converged: np.ndarray
     iterations: int
     n_evals: int
+    out_of_range: np.ndarray = None
 
 
 def _whiten(Li, d):
@@ -245,7 +246,7 @@ def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int =
                 & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
     ok = converged & np.isfinite(cost) & in_range
     return BatchPoseEstimate(poses=x, cov=cov, chi2=np.where(np.isfinite(cost), cost, np.inf), converged=ok,
-                             iterations=it, n_evals=n_evals)
+                             iterations=it, n_evals=n_evals, out_of_range=converged & np.isfinite(cost) & ~in_range)
 
 
 # ----------------------------------------------------------------------------- one trial
@@ -356,10 +357,12 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     est = estimate_poses_batch(nominal, z[lit], ctx.plan[lit], max_iter=cfg.max_iter)
     used = np.flatnonzero(lit)[est.converged]
     n_nc = int((~est.converged).sum())
-    base = {"n_used": int(used.size), "n_pupil_lost": n_lost, "n_not_converged": n_nc,
+    n_oor = int(est.out_of_range.sum())
+    base = {"n_used": int(used.size), "n_pupil_lost": n_lost, "n_not_converged": n_nc, "n_out_of_range": n_oor,
             "grasp_error": g.tolist()}
     if used.size < cfg.min_poses:
-        return _fail(f"only {used.size} of {n} poses usable ({n_lost} pupil lost, {n_nc} not converged)", **base)
+        return _fail(f"too few usable poses: {used.size} of {n} ({n_lost} pupil lost for the as-built lens, "
+                     f"{n_nc} estimates not converged, of which {n_oor} left the bench's pose range)", **base)
     x_est = est.poses[est.converged]
     err = x_est - x_true[used]
     cov = est.cov[est.converged]
@@ -430,6 +433,7 @@ def summarize_errors(records: list[dict], target_mm: float, target_deg: float, p
                               for k, v in zip(DOF_NAMES[3:], mb[3:])}},
         "pupil_lost_poses": int(sum(r.get("n_pupil_lost", 0) for r in records)),
         "not_converged_poses": int(sum(r.get("n_not_converged", 0) for r in records)),
+        "out_of_range_poses": int(sum(r.get("n_out_of_range", 0) for r in records)),
     }
 
 
