@@ -95,12 +95,15 @@ def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y):
     """(z, dz/dx, dz/dy, ok) of surface s at (x, y)."""
     r2 = x * x + y * y
     cs = c[s]
-    arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
-    if arg <= 0.0:
-        return 0.0, 0.0, 0.0, False
-    root = math.sqrt(arg)
-    z = cs * r2 / (1.0 + root)
-    dr = cs / root  # dz/dx = x * dr
+    z = 0.0
+    dr = 0.0  # dz/dx = x * dr
+    if cs != 0.0:
+        arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
+        if arg <= 0.0:
+            return 0.0, 0.0, 0.0, False
+        root = math.sqrt(arg)
+        z = cs * r2 / (1.0 + root)
+        dr = cs / root
     za = 0.0
     da = 0.0
     for i in range(n_alpha[s], 0, -1):
