@@ -64,7 +64,7 @@ def sag_departure(surface, x, y, n_phi: int = 64):
 
 def plot_sag_maps(lens, n: int = 121):
     """Figure: sag of front and back surface and their departure from rotational symmetry (mm)."""
-    fig = new_figure(figsize=(10, 8.5))
+    fig = new_figure(figsize=(10, 8.5), layout="constrained")
     a = 0.5 * lens.aperture
     g = np.linspace(-a, a, n)
     X, Y = np.meshgrid(g, g)
@@ -88,7 +88,7 @@ def plot_zernike_response(S, modes, pose_scales, title: str = "Zernike response 
     from .optics.pose import DOF_NAMES
 
     S = np.asarray(S, dtype=float)
-    fig = new_figure(figsize=(12, 6))
+    fig = new_figure(figsize=(12, 6.5), layout="constrained")
     scales = np.asarray(pose_scales, dtype=float)
     for j in range(6):
         ax = fig.add_subplot(2, 3, j + 1)

@@ -146,8 +146,8 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                  fast: bool = False) -> Feasibility:
     """Check every constraint; never raises for a non-physical lens (reported instead).
 
-    fast: skip ``Lens.validate`` and use a coarser thickness grid (inside optimisers;
-    the returned design is always re-checked with fast=False).
+    fast: skip ``Lens.validate`` (inside optimisers; the returned design is always
+    re-checked with fast=False).
     """
     vs: list[Violation] = []
     if not fast:
@@ -157,7 +157,7 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
             return Feasibility(False, (Violation("geometry", float("nan"), 0.0, str(e)),), 1e3)
     # thickness: centre and the rest of the edge diameter (polar grid incl. the rim)
     t_c = float(lens.thickness_at(0.0, 0.0))
-    x, y = _polar_grid(0.5 * lens.edge_diameter, *((16, 48) if fast else (48, 96)))
+    x, y = _polar_grid(0.5 * lens.edge_diameter)  # the grid Lens.min_thickness uses
     t_all = lens.thickness_at(x, y)
     if not np.all(np.isfinite(t_all)):
         return Feasibility(False, (Violation("geometry", float("nan"), 0.0,

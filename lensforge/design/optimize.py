@@ -36,9 +36,10 @@ __all__ = ["METHODS", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "
 METHODS = ("nelder-mead", "pso", "ga", "cmaes")
 _ALIASES = {"nm": "nelder-mead", "nelder_mead": "nelder-mead", "neldermead": "nelder-mead", "simplex": "nelder-mead",
             "cma": "cmaes", "cma-es": "cmaes", "cma_es": "cmaes", "genetic": "ga", "swarm": "pso"}
-DEFAULT_MAX_EVALS = {"nelder-mead": 1500, "pso": 3000, "ga": 3000, "cmaes": 1500}
+DEFAULT_MAX_EVALS = {"nelder-mead": 1000, "pso": 3000, "ga": 3000, "cmaes": 1500}  # ~30 ms per evaluation
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
+_N_CANDIDATES = 10
 
 
 class _Stop(Exception):
@@ -119,6 +120,7 @@ class DesignProblem:
         self.best_cost = np.inf
         self.best_u = None
         self.history: list[dict] = []
+        self.candidates: list = []  # best feasible points (cost, eval index, u), fallback if the full check fails
         self.iteration = 0
         self.t0 = time.perf_counter()
 
@@ -151,6 +153,10 @@ class DesignProblem:
         if cost < self.best_cost:
             self.best_cost = cost
             self.best_u = u.copy()
+        if cost < INFEASIBLE:
+            self.candidates.append((cost, self.n_evals, u.copy()))
+            if len(self.candidates) > 4 * _N_CANDIDATES:
+                self.candidates = sorted(self.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]
         if self.progress is not None:
             self.progress.update(self.n_evals, self.best_cost)
         return cost
@@ -412,10 +418,18 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     if prob.best_u is None or prob.best_cost >= INFEASIBLE:
         raise DesignError(f"{meth} found no feasible design in {prob.n_evals} evaluations; "
                           "widen the bounds or relax the constraints")
-    p_best = par.from_unit(prob.best_u)
-    lens = par.to_lens(p_best).replace(name=f"lensforge {par.model} ({meth}, {crit}, seed {seed})")
-    feas = check_design(bench, lens, constraints, prob.poses, fast=False)
-    require_feasible(feas, f"optimised {par.model} design")
+    # the returned design passes the full check; fall back through the next-best
+    # feasible points if the optimiser's best fails it (e.g. Lens.validate)
+    first_fail = None
+    for cost, _, u in sorted(prob.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]:
+        p_best = par.from_unit(u)
+        lens = par.to_lens(p_best).replace(name=f"lensforge {par.model} ({meth}, {crit}, seed {seed})")
+        feas = check_design(bench, lens, constraints, prob.poses, fast=False)
+        if feas.ok:
+            break
+        first_fail = first_fail or feas
+    else:
+        require_feasible(first_fail, f"optimised {par.model} design")
     S, z0, _ = sensitivity_from_model(feas.model)
     m = metrics_from_S(S, feas.model.noise_cov, bench, z0, weights)
     settings = {"max_evals": evals, "n_starts": int(n_starts), "ftol": ftol, "time_limit_s": time_limit_s, **info}
