@@ -110,3 +110,13 @@ def test_cli_estimate_study_errors(tmp_path, args, fragment):
     assert r.returncode != 0
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and fragment in lines[0], r.stderr
+
+
+def test_swing_equivalent_keeps_the_optical_axis():
+    from lensforge.optics.pose import pose_to_matrix
+    from lensforge.verification.estimation_study import swing_equivalent
+
+    x = np.array([0.1, 0.2, 0.3, 0.01, -0.02, 0.015])
+    y = swing_equivalent(x)
+    assert abs(y[5]) < 1e-15 and np.array_equal(y[:3], x[:3])
+    assert np.allclose(pose_to_matrix(x)[:3, 2], pose_to_matrix(y)[:3, 2], atol=1e-14)

@@ -12,7 +12,8 @@ failure rate split into pupil lost (the true pose does not light the pupil, or
 the UKF's sigma points leave it) and no convergence (solver failed or left the
 bench's pose range). Statistics are over the successful trials. Unobservable DOF
 (rank loss, e.g. the spherical lens's rz) are excluded from the error norms and
-have no RMSE/CRLB.
+have no RMSE/CRLB; for a lens symmetric about its axis the estimate (rz held at 0)
+is scored against the equivalent true pose without twist (``swing_equivalent``).
 
 Trials are seeded with SeedSequence(seed).spawn(trials); the same seed gives the
 same true poses and noise for every lens and method (common random numbers).
@@ -142,6 +143,19 @@ def _crlb_var(model: ForwardModel, x: np.ndarray) -> np.ndarray:
     return var
 
 
+def swing_equivalent(x: np.ndarray) -> np.ndarray:
+    """For a lens symmetric about its own axis: the pose equivalent to x (rotated about
+    the lens's z axis) whose rotation vector has no z component (swing-twist split:
+    q (x) q_z(phi) with tan(phi/2) = -q_z / q_w). Translation is unchanged."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_rotvec(x[3:]).as_quat()  # (x, y, z, w)
+    phi = -2.0 * np.arctan2(q[2], q[3])
+    y = np.array(x, dtype=float)
+    y[3:] = (Rotation.from_rotvec(x[3:]) * Rotation.from_rotvec([0.0, 0.0, phi])).as_rotvec()
+    return y
+
+
 def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, method: str = "lm", seed: int = 0,
                initial: InitialPoseModel | None = None, commanded=None, **estimator_options) -> LensStudy:
     """Run ``trials`` seeded estimates of one lens (see module docstring)."""
@@ -199,11 +213,14 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
             msgs.append(f"trial {i}: {est.message}")
             continue
         status[i] = OK
-        errors[i] = est.pose - x
+        # a lens symmetric about its axis: rz is held at the commanded value (0), so
+        # score against the equivalent true pose with no twist
+        xs = swing_equivalent(x) if est.unobservable == ("rz",) and c[5] == 0 else x
+        errors[i] = est.pose - xs
         rstd[i] = est.std
         chi2[i] = est.chi2
-        nees[i] = est.nees(x)
-        crlb[i] = _crlb_var(model, x)
+        nees[i] = est.nees(xs)
+        crlb[i] = _crlb_var(model, xs)
     seconds = time.perf_counter() - t0
     return LensStudy(name=name, method=method, errors=errors, true_poses=truth, status=status.astype(str),
                      reported_std=rstd, crlb_var=crlb, chi2=chi2, nees=nees, n_evals=nev, dof=dof,
@@ -274,8 +291,14 @@ def plot_study(results: list[LensStudy], path) -> "Path":
         ax.axhline(0.0, color="0.6", lw=0.6)
         ax.set_title(f"{DOF_NAMES[j]} error ({unit})", fontsize=9)
         for k, r in enumerate(results):
+            cv = r.crlb_var[r.ok, j]
+            if DOF_NAMES[j] not in r.unobservable and np.isfinite(cv).any():
+                b = np.sqrt(np.nanmean(cv[np.isfinite(cv)])) * sc
+                ax.hlines([-b, b], k + 0.7, k + 1.3, colors="C3", linestyles="--", lw=0.8,
+                          label="+-1 CRLB std" if k == 0 or not ax.get_legend_handles_labels()[0] else None)
             if DOF_NAMES[j] in r.unobservable:
                 ax.text(k + 1, 0, "unobservable", ha="center", va="center", fontsize=6, rotation=90, color="C3")
+    axes.flat[0].legend(fontsize=7, loc="upper right")
     n = len(results[0].status) if results else 0
     fig.suptitle(f"Pose-estimation error over {n} trials per lens (estimate - truth)", fontsize=10)
     buf = io.BytesIO()
