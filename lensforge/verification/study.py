@@ -124,12 +124,18 @@ def _whiten(Li, d):
     return d @ Li.T
 
 
-def _jacobian(model: ForwardModel, x, uv, z0, valid0, L):
-    """Whitened central-difference Jacobian (P, m, 6) at poses x (P, 6); one trace of 12P poses.
-
-    One-sided where one side is unlit (as estimate_pose does)."""
+def _jacobian(model: ForwardModel, x, uv, z0, valid0, L, central: bool = True):
+    """Whitened finite-difference Jacobian (P, m, 6) at poses x (P, 6): central (one
+    trace of 12P poses; one-sided where one side is unlit, as estimate_pose does) or
+    forward (6P poses)."""
     P = x.shape[0]
     h = np.asarray(model.bench.fd_steps, dtype=float)
+    if not central:
+        poses = (x[:, None, :] + np.diag(h)[None]).reshape(-1, 6)
+        res = model.evaluate(poses, uv0=np.repeat(uv, 6, axis=0), check_range=False)
+        zp = res.z.reshape(P, 6, -1)
+        J = np.where(res.valid.reshape(P, 6)[..., None], (zp - z0[:, None]) / h[None, :, None], 0.0)
+        return _whiten(L, J).transpose(0, 2, 1), 6 * P
     steps = np.concatenate([np.diag(h), -np.diag(h)])  # (12, 6)
     poses = (x[:, None, :] + steps[None]).reshape(-1, 6)
     uv0 = np.repeat(uv, 12, axis=0)
@@ -145,14 +151,15 @@ def _jacobian(model: ForwardModel, x, uv, z0, valid0, L):
 
 
 def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int = 40, xtol: float = 1e-10,
-                         ftol: float = 1e-10) -> BatchPoseEstimate:
+                         ftol: float = 1e-10, fast_start: bool = True) -> BatchPoseEstimate:
     """Whitened least-squares pose estimates for P measurements at once (LM, batched).
 
     z_measured: (P, m) Zernikes (um); x0: (P, 6) initial poses (mm, rad). Same
     objective as ``estimate_pose(method="lm")``; each pose has its own damping and
     stops on its own (relative step < xtol in scaled units, or relative cost change
     < ftol). Pose directions unobservable at x0 (bench.rank_rtol, as in
-    ``metrics``) stay at x0 with inf variance.
+    ``metrics``) stay at x0 with inf variance. fast_start: forward-difference
+    Jacobians until the cost stalls (same fixed point, fewer traces).
     """
     Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
     x = np.array(np.atleast_2d(x0), dtype=float)
@@ -173,15 +180,23 @@ def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int =
     J = np.zeros((P, Z.shape[1], 6))
     need_J = valid.copy()
     obs_mask = np.ones((P, 6), bool)
+    # Forward differences (half the traces) while far from the minimum; central ones
+    # once the cost stalls, and only central-Jacobian steps may end the iteration, so
+    # the fixed point J^T r = 0 is the central-difference one of estimate_pose.
+    near = np.full(P, not fast_start)
+    J_central = np.zeros(P, bool)
+    lim = bench.pose_limits
     first = True
     it = 0
     for it in range(1, max_iter + 1):
-        idx = np.flatnonzero(active & need_J)
-        if idx.size:
-            Jn, ne = _jacobian(model, x[idx], uv[idx], zc[idx], valid[idx], L)
-            J[idx] = Jn * D  # scaled: d r / d u, u = x / D
-            n_evals += ne
-            need_J[idx] = False
+        for cen in (True, False):
+            idx = np.flatnonzero(active & need_J & (near == cen))
+            if idx.size:
+                Jn, ne = _jacobian(model, x[idx], uv[idx], zc[idx], valid[idx], L, central=cen)
+                J[idx] = Jn * D  # scaled: d r / d u, u = x / D
+                J_central[idx] = cen
+                n_evals += ne
+                need_J[idx] = False
         if first:
             # rank test at x0 on the scaled whitened Jacobian (as metrics / estimate_pose)
             for p in np.flatnonzero(valid):
@@ -215,18 +230,34 @@ def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int =
         ai = a[acc]
         small_step = tiny[acc]
         small_cost = (cost[ai] - cn[acc]) <= ftol * cost[ai]
+        stalled = (cost[ai] - cn[acc]) <= 0.1 * cost[ai]
+        near[ai] |= stalled | small_step | small_cost
+        fin = J_central[ai]
+        small_step &= fin
+        small_cost &= fin
         x[ai], r[ai], cost[ai], zc[ai] = xn[acc], rn[acc], cn[acc], rn_res.z[acc]
         uv[ai] = rn_res.uv[acc]
         lam[ai] = np.maximum(lam[ai] / 10.0, 1e-10)
         need_J[ai] = True
         rej = a[~acc]
-        lam[rej] = np.maximum(lam[rej] * 10.0, 1e-4)  # the point is unchanged, so J is reused exactly
+        # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly;
+        # a forward-difference J that fails to descend is replaced by the central one
+        fwd_rej = rej[~J_central[rej]]
+        near[fwd_rej] = True
+        need_J[fwd_rej] = True
+        rej = rej[J_central[rej]]
+        lam[rej] = np.maximum(lam[rej] * 10.0, 1e-4)
         done = ai[small_step | small_cost]
         converged[done] = True
         active[done] = False
-        stuck = rej[tiny[~acc] | (lam[rej] > 1e12)]
+        stuck = rej[tiny[np.isin(a, rej)] | (lam[rej] > 1e12)]
         converged[stuck] = True  # no descent direction left: a (possibly flat) minimum
         active[stuck] = False
+        # an estimate far outside the bench's pose range is abandoned (reported out of range)
+        far = ai[(np.abs(x[ai, :3]) > 2 * lim.translation_mm).any(axis=1)
+                 | (np.linalg.norm(x[ai, 3:], axis=1) > 2 * lim.rotation_rad)]
+        converged[far] = True
+        active[far] = False
     # covariance from the Jacobian at the last linearisation point
     cov = np.full((P, 6, 6), np.nan)
     for p in np.flatnonzero(valid):
@@ -241,7 +272,6 @@ def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int =
         for i in np.flatnonzero(~obs_mask[p]):
             c[i, i] = np.inf
         cov[p] = c
-    lim = bench.pose_limits
     in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
                 & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
     ok = converged & np.isfinite(cost) & in_range
