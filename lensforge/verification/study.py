@@ -415,7 +415,8 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     if cfg.self_calibrate:
         from .self_calibration import self_calibrate_trial
 
-        rec["selfcal"] = self_calibrate_trial(ctx, nominal, z[used], x_est, x_true[used], A_cmd[used], X_true)
+        rec["selfcal"] = self_calibrate_trial(ctx, nominal, z[used], x_est, x_true[used], A_cmd[used], X_true,
+                                              he.Z, he.X, lens_ab)
     return rec
 
 
