@@ -63,25 +63,33 @@ for _name in _COMMAND_MODULES:
     _mod.register(app)
 
 
+def _is_click_exception(e: BaseException, name: str) -> bool:
+    """True if e is click's (or Typer's bundled click's) exception class ``name``."""
+    return any(cls.__name__ == name and "click" in cls.__module__ for cls in type(e).__mro__)
+
+
 def main() -> None:
-    """Entry point: run the app, turning LensforgeError into one line + exit 2."""
+    """Entry point: run the app; a user's mistake prints one line ``error: ...`` and exits 2."""
     try:
-        app(standalone_mode=False)
+        rc = app(standalone_mode=False)
     except LensforgeError as e:
         typer.echo(f"error: {e}", err=True)
         sys.exit(2)
-    except typer.Exit as e:
-        sys.exit(e.exit_code)
-    except typer.Abort:
-        typer.echo("error: aborted", err=True)
-        sys.exit(1)
-    except Exception as e:  # click usage errors
-        import click
-
-        if isinstance(e, click.exceptions.UsageError):
-            typer.echo(f"error: {e.format_message()}", err=True)
-            sys.exit(2)
-        if isinstance(e, click.exceptions.ClickException):
-            typer.echo(f"error: {e.format_message()}", err=True)
-            sys.exit(e.exit_code)
+    except KeyboardInterrupt:
+        typer.echo("error: interrupted", err=True)
+        sys.exit(130)
+    except Exception as e:
+        # click / Typer-bundled click: usage errors, bad option values, aborts, exits
+        if _is_click_exception(e, "Exit") or type(e).__name__ == "Exit":
+            sys.exit(getattr(e, "exit_code", 0))
+        if _is_click_exception(e, "Abort"):
+            typer.echo("error: aborted", err=True)
+            sys.exit(1)
+        if _is_click_exception(e, "ClickException"):
+            msg = e.format_message() if hasattr(e, "format_message") else str(e)
+            typer.echo(f"error: {' '.join(msg.split())}", err=True)
+            sys.exit(2 if _is_click_exception(e, "UsageError") else getattr(e, "exit_code", 1) or 1)
         raise
+    # with standalone_mode=False, typer.Exit(code) comes back as the return value
+    if isinstance(rc, int) and rc != 0:
+        sys.exit(rc)

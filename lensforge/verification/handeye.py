@@ -57,12 +57,16 @@ __all__ = [
 
 METHODS = ("ml", "shah", "li")
 
-# a direction counts as unobservable when its relative singular value (column-
-# equilibrated whitened Jacobian) is below max(_RTOL_ABS, _NOISE_FACTOR * sigma_rot):
-# motion diversity that does not rise clearly above the rotation noise cannot be
-# told apart from noise (ASSUMPTION: factor 10, checked on the degenerate tests).
+# A direction of (X, Z) counts as unobservable when it is numerically null (relative
+# singular value of the column-equilibrated whitened Jacobian below _RTOL_ABS) or when
+# the data cannot pin it down: its predicted 1-sigma (Fisher information) exceeds
+# _OBS_LIMIT_MM along a translation or _OBS_LIMIT_RAD along a rotation. Judging by
+# the honest covariance rather than by the singular values alone keeps small but
+# well-measured motions (e.g. +-1 deg with 1 mrad lens-pose noise) observable.
+# ASSUMPTION: 1 mm and 0.01 rad are far beyond any useful calibration.
 _RTOL_ABS = 1e-9
-_NOISE_FACTOR = 10.0
+_OBS_LIMIT_MM = 1.0
+_OBS_LIMIT_RAD = 0.01
 _ORTHO_TOL = 1e-6  # |R^T R - I| tolerated in input rotations
 
 
@@ -477,12 +481,17 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
     d[d == 0] = 1.0
     _, s, Vt = np.linalg.svd(Jw / d, full_matrices=False)
     rel = s / s[0]
-    # rotation noise level (rad) of the residuals: max over poses of the largest
-    # eigenvalue of the rotation block
-    sig_rot = float(np.sqrt(np.max(np.linalg.eigvalsh(S[:, 3:, 3:]))))
-    tol = max(_RTOL_ABS, _NOISE_FACTOR * sig_rot)
-    null = rel < tol
-    N = (Vt[null].T) / d[:, None]  # back to physical units
+    # predicted covariance in limit-scaled units: eigenvalues > 1 are directions the data
+    # cannot pin to within the limits
+    lim = np.array(([_OBS_LIMIT_MM] * 3 + [_OBS_LIMIT_RAD] * 3) * 2)
+    Js = Jw * lim
+    _, ss, Vts = np.linalg.svd(Js, full_matrices=False)
+    numerically_null = (ss / ss[0]) < _RTOL_ABS
+    loose = np.zeros_like(numerically_null)
+    loose[~numerically_null] = ss[~numerically_null] < 1.0  # std along direction > limit
+    null = numerically_null | loose
+    tol = {"rtol": _RTOL_ABS, "limit_mm": _OBS_LIMIT_MM, "limit_rad": _OBS_LIMIT_RAD}
+    N = Vts[null].T * lim[:, None]  # back to physical units
     if N.shape[1]:
         N = N / np.linalg.norm(N, axis=0)
     length = max(float(np.sqrt(np.mean(np.sum(B[:, :3, 3] ** 2, axis=1)))), 10.0)
@@ -515,8 +524,8 @@ class HandEyeResult:
     residuals, so chi2_dof is ~1 by construction). method: the method asked for;
     start_method: the closed form used (for "ml", the better of Shah and Li by the
     weighted cost). observable / null_directions: see ``observability``; a direction
-    is unobservable when its relative singular value (column-equilibrated whitened
-    Jacobian) is below max(1e-9, 10 x the residual rotation noise in rad).
+    is unobservable when it is numerically null or its predicted 1-sigma exceeds
+    1 mm / 0.01 rad (see _OBS_LIMIT_MM, _OBS_LIMIT_RAD).
     iterations: residual evaluations of the ML refinement (0 for closed forms).
     """
 
