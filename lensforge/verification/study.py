@@ -627,6 +627,8 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     to append finished trials to (resume=True continues a killed study; the store
     refuses a different study); self_calibrate: also estimate as-built parameters
     jointly with the poses. Returns a :class:`StudyResult` (errors in deg and mm).
+    A script that starts a local cluster (workers != 0) needs the usual
+    ``if __name__ == "__main__":`` guard (worker processes are spawned).
     """
     from .runner import TrialStore, config_hash, run_trials
 
