@@ -8,6 +8,14 @@ Command groups live in ``lensforge/commands/*.py``; each module has
 
 from __future__ import annotations
 
+import os
+
+# The CLI's linear algebra is on small matrices (<= 300 x 12) where multi-threaded BLAS
+# only adds overhead (a 24-pose hand-eye solve: ~200 ms threaded vs ~14 ms single);
+# parallelism comes from numba (trace) and Dask workers. Users can override.
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 import importlib
 import json
 import sys

@@ -7,8 +7,10 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, replace
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 
@@ -16,7 +18,7 @@ from ..errors import ConfigError, LensGeometryError
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
-__all__ = ["Lens", "paper_lens", "PAPER_LENSES"]
+__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens"]
 
 
 def _polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
@@ -218,3 +220,25 @@ def paper_lens(name: str) -> Lens:
     if key not in PAPER_LENSES:
         raise ConfigError(f"lens name: unknown paper lens {name!r}; use one of {sorted(PAPER_LENSES)}")
     return Lens(**PAPER_LENSES[key]).validate()
+
+
+def load_lens(source) -> tuple[Lens, dict]:
+    """A lens from a paper lens name, a design JSON file (lens under key "lens") or a
+    lens JSON file (``Lens.to_dict()``). Returns (validated lens, parsed JSON or {})."""
+    key = str(source).lower().replace("-", "_")
+    if isinstance(source, str) and key in PAPER_LENSES:
+        return paper_lens(key), {}
+    p = Path(source)
+    if not p.exists():
+        raise ConfigError(
+            f"lens: {str(source)!r} is neither a paper lens ({', '.join(sorted(PAPER_LENSES))}) nor an existing file"
+        )
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"lens file {p}: cannot be read ({e})") from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"lens file {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"lens file {p}: expected a JSON object")
+    return Lens.from_dict(data.get("lens", data), where=f"{p.name}:lens").validate(), data

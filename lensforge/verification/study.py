@@ -531,9 +531,9 @@ def resolve_lens(design_or_lens, bench: Bench | None = None) -> tuple[Lens, Benc
         if isinstance(obj, str) and key in PAPER_LENSES:
             obj = paper_lens(key)
         else:
-            from ..commands._common import load_lens_arg  # shared lens-argument reader (no CLI import)
+            from ..optics.lens import load_lens
 
-            lens, data = load_lens_arg(str(obj))
+            lens, data = load_lens(str(obj))
             if isinstance(data, dict) and isinstance(data.get("bench"), dict):
                 des_bench = Bench.from_dict(data["bench"], "design.bench")
             obj = lens
