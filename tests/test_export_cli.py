@@ -48,3 +48,16 @@ def test_bad_arguments_one_line_error(tmp_path, args, fragment):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and fragment in lines[0]
     assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_export_3mf_round_trip(tmp_path):
+    import trimesh
+
+    import lensforge as lf
+    from lensforge.manufacturing.report import export_lens
+
+    rep = export_lens(lf.paper_lens("zernike"), tmp_path, "z", stl=True, step=False, run_slicer=False, threemf=True)
+    assert rep.threemf_path.exists() and rep.to_dict()["files"]["3mf"].endswith("z.3mf")
+    m = trimesh.load(rep.threemf_path, force="mesh")
+    assert m.is_watertight
+    assert abs(m.volume - rep.stl.volume_mm3) / rep.stl.volume_mm3 < 1e-9

@@ -16,6 +16,7 @@ def register(app: typer.Typer) -> None:
         design: str = typer.Argument(..., help="Paper lens name, design JSON (key 'lens') or lens JSON."),
         stl: bool = typer.Option(False, "--stl", help="Write a binary STL (default: both STL and STEP)."),
         step: bool = typer.Option(False, "--step", help="Write an AP214 STEP solid (default: both)."),
+        threemf: bool = typer.Option(False, "--3mf", help="Also write a 3MF mesh (mm)."),
         fiducial: bool = typer.Option(False, "--fiducial", help="Add an orientation fiducial on the edge."),
         fiducial_kind: str = typer.Option("flat", "--fiducial-kind", help="Fiducial shape: flat or notch."),
         tab: bool = typer.Option(False, "--tab", help="Add a gripper tab on the edge."),
@@ -51,7 +52,7 @@ def register(app: typer.Typer) -> None:
         stem = name or Path(design).stem.replace(" ", "_")
         spec = FeatureSpec(fiducial=fiducial_kind if fiducial else None, tab=tab)
         rep = export_lens(lens, out, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
-                          chord_tol_mm=chord_tol, run_slicer=slicer)
+                          chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf)
         info(rep.summary())
         if json_out:
             emit_json(rep.to_dict())

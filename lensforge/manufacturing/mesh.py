@@ -369,6 +369,16 @@ def export_stl(lens: Lens, path, chord_tol_mm: float = 1e-3, fiducial: bool | st
     return save_stl(lm, path, t0)
 
 
+def save_3mf(lm: LensMesh, path) -> Path:
+    """Write a validated lens mesh as 3MF (mm units; trimesh's exporter, needs networkx)."""
+    chk = check_mesh(lm.mesh, lm.analytic_volume_mm3, lm.volume_bound_mm3)
+    if not chk.ok:
+        raise LensforgeError(f"mesh: validation failed ({chk.to_dict()}); the 3MF was not written")
+    mesh = lm.mesh.copy()
+    mesh.units = "millimeters"
+    return write_atomic(path, trimesh.exchange.export.export_mesh(mesh, None, file_type="3mf"))
+
+
 def save_stl(lm: LensMesh, path, t0: float | None = None) -> StlExport:
     """Validate a built lens mesh and write it as a binary STL (atomically).
 

@@ -12,7 +12,7 @@ from ..errors import LensforgeError
 from ..optics.bench import write_atomic
 from ..optics.lens import Lens
 from .features import FeatureSpec
-from .mesh import StlExport, build_lens_mesh, check_mesh, save_stl
+from .mesh import StlExport, build_lens_mesh, check_mesh, save_3mf, save_stl
 from .printer import FORM2, PrinterProfile, PrintReport, check_layer, printability
 from .slicer import SlicerCheck, slicer_check
 from .step import StepExport, export_step
@@ -34,6 +34,7 @@ class ExportReport:
     mesh_check: dict  # watertight/manifold/volume of the mesh (also when no STL was written)
     report_path: Path | None
     wall_s: float
+    threemf_path: Path | None = None
 
     @property
     def ok(self) -> bool:
@@ -50,7 +51,7 @@ class ExportReport:
             "lens": self.lens_name,
             "ok": self.ok,
             "files": {k: str(v) for k, v in (("stl", self.stl and self.stl.path), ("step", self.step and self.step.path),
-                                               ("report", self.report_path)) if v},
+                                               ("3mf", self.threemf_path), ("report", self.report_path)) if v},
             "mesh": self.mesh_check,
             "stl": self.stl.to_dict() if self.stl else None,
             "step": self.step.to_dict() if self.step else None,
@@ -84,6 +85,8 @@ class ExportReport:
                 f"{f['feature']} {1000 * f['size_mm']:.0f} um" for f in pr.small_features))
         if self.stl:
             lines.append(f"  STL: {self.stl.path} ({self.stl.file_bytes} bytes, {self.stl.wall_s:.2f} s)")
+        if self.threemf_path is not None:
+            lines.append(f"  3MF: {self.threemf_path}")
         if self.step:
             s = self.step
             lines.append(f"  STEP: {s.path} ({s.file_bytes} bytes, {s.wall_s:.2f} s): max deviation "
@@ -105,8 +108,8 @@ def _yn(b) -> str:
 def export_lens(lens: Lens, out_dir, stem: str, stl: bool = True, step: bool = True,
                 features: FeatureSpec | None = None, layer_mm: float = 0.025, chord_tol_mm: float = 1e-3,
                 run_slicer: bool = True, profile: PrinterProfile = FORM2,
-                write_report: bool = True) -> ExportReport:
-    """Write OUT_DIR/STEM.stl and/or .step and STEM.report.json; check printability.
+                write_report: bool = True, threemf: bool = False) -> ExportReport:
+    """Write OUT_DIR/STEM.stl and/or .step (and .3mf) and STEM.report.json; check printability.
 
     The slicer runs on the written STL (verdict "not available" without PrusaSlicer).
     """
@@ -123,6 +126,7 @@ def export_lens(lens: Lens, out_dir, stem: str, stl: bool = True, step: bool = T
         chk = stl_res.check
     else:
         chk = check_mesh(lm.mesh, lm.analytic_volume_mm3, lm.volume_bound_mm3)
+    tmf = save_3mf(lm, out_dir / f"{stem}.3mf") if threemf else None
     mesh_check = chk.to_dict()
     mesh_check.update(chord_error_mm=lm.chord_error_mm, chord_tol_mm=lm.chord_tol_mm, n_rings=lm.n_rings,
                       n_rim=lm.n_rim)
@@ -132,7 +136,7 @@ def export_lens(lens: Lens, out_dir, stem: str, stl: bool = True, step: bool = T
     if run_slicer and stl_res is not None:
         sl = slicer_check(stl_res.path, layer, expected_volume_mm3=stl_res.volume_mm3)
     rp = out_dir / f"{stem}.report.json" if write_report else None
-    rep = ExportReport(lens.name or stem, stl_res, step_res, pr, sl, mesh_check, rp, 0.0)
+    rep = ExportReport(lens.name or stem, stl_res, step_res, pr, sl, mesh_check, rp, 0.0, tmf)
     rep = ExportReport(**{**rep.__dict__, "wall_s": time.perf_counter() - t0})
     if rp is not None:
         write_atomic(rp, json.dumps(rep.to_dict(), indent=2, allow_nan=False, default=_json_default) + "\n")
