@@ -42,6 +42,10 @@ def register(app: typer.Typer) -> None:
         range_deg: float = typer.Option(1.0, "--range-deg", help="working range, rotation half-width (deg)"),
         time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
         bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in)"),
+        robust: Optional[Path] = typer.Option(None, "--robust", help="tolerance TOML: minimise the expected criterion over as-built draws (tolerance-robust design)"),
+        robust_samples: int = typer.Option(8, "--robust-samples", help="as-built draws per candidate (with --robust)"),
+        robust_seed: int = typer.Option(0, "--robust-seed", help="seed of the as-built draws, common to all candidates (with --robust)"),
+        robust_statistic: str = typer.Option("mean", "--robust-statistic", help="mean | max | mean+std of the criterion over the draws (with --robust)"),
         out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
         no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
         json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
@@ -57,19 +61,32 @@ def register(app: typer.Typer) -> None:
         from ._common import load_bench_arg
 
         b = load_bench_arg(bench)
+        spec = None
+        if robust is not None:
+            from ..design.robust import RobustSpec
+            from ..manufacturing.tolerances import load_tolerances
+
+            spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
+                              statistic=robust_statistic)
         cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
                            range_rad=math.radians(range_deg))
         d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
                             free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
                             n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
-                            progress=not no_progress and not json_out)
+                            progress=not no_progress and not json_out, robust=spec)
         path = save_design(d, out)
         if json_out:
             emit_json({"schema_version": 1, "design": str(path), "model": d.model, "method": d.method, "seed": d.seed,
                        "criterion": d.criterion, "n_evals": d.n_evals, "wall_time_s": d.wall_time_s,
-                       "parameters": d.parameters, "metrics": d.metrics})
+                       "parameters": d.parameters, "metrics": d.metrics,
+                       "robust": None if d.robust is None else
+                       {k: d.robust[k] for k in ("n_samples", "seed", "statistic", "cost", "mean", "nominal", "n_failed")}})
         else:
             info(f"wrote {path}  ({d.n_evals} evaluations, {d.wall_time_s:.1f} s)")
+            if d.robust is not None:
+                r = d.robust
+                info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "
+                     f"(seed {r['seed']}, {r['n_failed']} unmeasurable); nominal {r['nominal']:.5g}")
             Console(stderr=True, width=200).print(format_table(compare_rows([d], b, cons)))
 
     @app.command()

@@ -7,8 +7,12 @@ from here), ``bench`` (``Bench.to_dict()``), ``criterion``, ``weights``,
 ``constraints``, ``feasibility``, ``metrics`` (rank, kappa, sigma_min, J, D, A, CRLB
 std per DOF in um / urad, ...), ``method``, ``seed``, ``settings``, ``start``,
 ``history`` (best cost per iteration, thinned to at most 200 rows), ``n_evals``,
-``wall_time_s``, ``lensforge_version``. ``load_design(save_design(d))`` gives back
-a design whose ``to_dict()`` equals the original's.
+``wall_time_s``, ``lensforge_version``; optional ``robust`` (present only for a
+tolerance-robust design: ``tolerances`` in the TOML layout, ``n_samples``, ``seed``,
+``statistic``, ``criterion``, and the returned lens's robust ``cost``, ``mean``,
+``nominal``, ``n_failed`` and per-draw ``values``). Files without it are nominal
+designs (schema_version stays 1). ``load_design(save_design(d))`` gives back a
+design whose ``to_dict()`` equals the original's.
 """
 
 from __future__ import annotations
@@ -90,6 +94,7 @@ class Design:
     wall_time_s: float = 0.0
     labels: dict = field(default_factory=dict)
     lensforge_version: str = ""
+    robust: dict | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "free", tuple(self.free))
@@ -97,6 +102,10 @@ class Design:
         object.__setattr__(self, "history", tuple(thin_history(_plain(list(self.history)))))
         for f in ("parameters", "bounds", "constraints", "feasibility", "metrics", "settings", "start", "labels"):
             object.__setattr__(self, f, _plain(dict(getattr(self, f))))
+        if self.robust is not None:
+            if not isinstance(self.robust, dict):
+                raise ConfigError("design.robust: expected an object (the robust-design record) or null")
+            object.__setattr__(self, "robust", _plain(copy.deepcopy(dict(self.robust))))
         if not self.lensforge_version:
             from .. import __version__
 
@@ -117,12 +126,20 @@ class Design:
 
         return metrics(bench or self.bench, self.lens, weights=self.weights)
 
+    def robust_spec(self):
+        """The :class:`~lensforge.design.robust.RobustSpec` this design was optimised with (None if nominal)."""
+        if self.robust is None:
+            return None
+        from .robust import RobustSpec
+
+        return RobustSpec.from_dict(self.robust, "design.robust")
+
     def parameter_vector(self) -> np.ndarray:
         return np.array([self.parameters[n] for n in self.free], dtype=float)
 
     # I/O ----------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {
+        d = {
             "schema_version": SCHEMA_VERSION,
             "kind": "lensforge.design",
             "model": self.model,
@@ -146,6 +163,9 @@ class Design:
             "wall_time_s": float(self.wall_time_s),
             "lensforge_version": self.lensforge_version,
         }
+        if self.robust is not None:
+            d["robust"] = copy.deepcopy(self.robust)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "design") -> "Design":
@@ -180,6 +200,7 @@ class Design:
             wall_time_s=float(d.get("wall_time_s", 0.0)),
             labels=d.get("labels", {}),
             lensforge_version=str(d.get("lensforge_version", "")),
+            robust=d.get("robust"),
         )
 
 

@@ -7,6 +7,12 @@ four methods only compare cost values, so the penalty's size does not bias them.
 The best feasible lens seen is returned, re-checked with the full constraint check;
 an infeasible result raises DesignError naming the violated constraint.
 
+Tolerance-robust design (``robust=RobustSpec(tolerances, n_samples, seed, statistic)``):
+the cost of a feasible candidate is the statistic (mean by default) of the criterion
+over ``n_samples`` as-built draws of its lens, seeded by the same SeedSequence
+children for every candidate (common random numbers; see ``robust.py``). The
+constraints (printability, working range) stay on the nominal design.
+
 Seeds: every random draw lensforge makes comes from ``numpy.random.default_rng(seed)``.
 pyswarms, pymoo and cma draw from numpy's *global* generator; lensforge seeds it for
 the duration of the run and restores its previous state afterwards.
@@ -30,8 +36,9 @@ from .constraints import Constraints, check_design, require_feasible, working_po
 from .criteria import check_criterion, criterion_value
 from .design_file import Design, metrics_dict
 from .parameterisation import Parameterisation, parameterisation
+from .robust import RobustSpec, robust_value
 
-__all__ = ["METHODS", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE"]
+__all__ = ["METHODS", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE", "RobustSpec"]
 
 METHODS = ("nelder-mead", "pso", "ga", "cmaes")
 _ALIASES = {"nm": "nelder-mead", "nelder_mead": "nelder-mead", "neldermead": "nelder-mead", "simplex": "nelder-mead",
@@ -105,8 +112,9 @@ class DesignProblem:
 
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
-                 progress: _Progress | None = None):
+                 progress: _Progress | None = None, robust: RobustSpec | None = None):
         self.bench = bench
+        self.robust = robust
         self.par = par
         self.criterion = check_criterion(criterion)
         self.weights = tuple(float(w) for w in weights)
@@ -125,8 +133,13 @@ class DesignProblem:
         self.t0 = time.perf_counter()
 
     # one lens ---------------------------------------------------------------
-    def evaluate_p(self, p):
-        """(cost, Feasibility, Metrics or None) of parameter vector p; never raises for bad lenses."""
+    def evaluate_p(self, p, nominal_only: bool = False):
+        """(cost, Feasibility, Metrics or None) of parameter vector p; never raises for bad lenses.
+
+        Metrics are the nominal lens's; with a robust spec the cost of a feasible lens
+        is the robust statistic over its as-built draws (nominal_only: the nominal
+        criterion, for feasibility probes).
+        """
         try:
             lens = self.par.to_lens(p)
         except LensforgeError as e:
@@ -140,7 +153,10 @@ class DesignProblem:
         if S is None:
             return INFEASIBLE * 2.0, f, None
         m = metrics_from_S(S, f.model.noise_cov, self.bench, z0, self.weights)
-        return criterion_value(self.criterion, m, self.weights), f, m
+        value = criterion_value(self.criterion, m, self.weights)
+        if self.robust is not None and not nominal_only:
+            value = robust_value(self.bench, lens, self.robust, self.criterion, self.weights, nominal=value).cost
+        return value, f, m
 
     def __call__(self, u) -> float:
         if self.n_evals >= self.max_evals:
@@ -191,7 +207,7 @@ class DesignProblem:
         first = {}
         for i in range(tries):
             u = 0.5 + shrink**i * (rng.random(self.par.n) - 0.5)
-            cost, f, m = self.evaluate_p(self.par.from_unit(u))
+            cost, f, m = self.evaluate_p(self.par.from_unit(u), nominal_only=True)
             if cost < INFEASIBLE:
                 return u
             for v in f.violations:
@@ -213,7 +229,7 @@ def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
             raise ConfigError(f"start: expected 'paper', 'random' or a parameter vector, got {start!r}")
         if key in ("paper", "template"):
             p = par.from_lens(par.template)
-            if par.in_bounds(p) and prob.evaluate_p(p)[0] < INFEASIBLE:
+            if par.in_bounds(p) and prob.evaluate_p(p, nominal_only=True)[0] < INFEASIBLE:
                 return par.to_unit(p), "template"
         return prob.random_feasible_start(rng), "random"
     p = np.asarray(start, dtype=float)
@@ -221,7 +237,7 @@ def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
         raise ConfigError(f"start: expected {par.n} values for {list(par.names)}, got shape {p.shape}")
     if not par.in_bounds(p):
         raise ConfigError(f"start: vector lies outside the bounds {par.bounds_dict()}")
-    cost, f, _ = prob.evaluate_p(p)
+    cost, f, _ = prob.evaluate_p(p, nominal_only=True)
     if cost >= INFEASIBLE:
         require_feasible(check_design(prob.bench, par.to_lens(p), prob.constraints), "start design")
     return par.to_unit(p), "given"
@@ -355,7 +371,7 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
                     constraints: Constraints | None = None, max_evals: int | None = None, start="paper",
                     n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.1,
                     ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,
-                    template: Lens | None = None) -> Design:
+                    template: Lens | None = None, robust: RobustSpec | None = None) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
 
     bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
@@ -367,7 +383,10 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     parameter vector; n_starts: Nelder-Mead starts (the 1st from ``start``, the
     rest random feasible); particles (PSO); population (GA, CMA-ES); sigma0: CMA-ES
     step in the unit box; ftol: relative stopping tolerance on the cost;
-    time_limit_s: wall-clock limit; progress: rich progress bar on stderr.
+    time_limit_s: wall-clock limit; progress: rich progress bar on stderr;
+    robust: a :class:`RobustSpec` to minimise the statistic of the criterion over
+    as-built draws (common random numbers) instead of the nominal criterion; the
+    design's ``robust`` record holds the spec and the returned lens's robust cost.
     Raises ConfigError for bad settings and DesignError for an infeasible problem.
     """
     bench = bench or Bench.default()
@@ -391,11 +410,13 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     if time_limit_s is not None and not time_limit_s > 0:
         raise ConfigError(f"time_limit_s: must be > 0 seconds, got {time_limit_s}")
     constraints = constraints or Constraints()
+    if robust is not None and not isinstance(robust, RobustSpec):
+        raise ConfigError(f"robust: expected a RobustSpec(tolerances, n_samples, seed, statistic), got {robust!r}")
     rng = np.random.default_rng(seed)
-    label = f"{meth} {par.model} ({crit})"
+    label = f"{meth} {par.model} ({crit}{', robust' if robust is not None else ''})"
     t0 = time.perf_counter()
     with _Progress(progress, evals, label) as prog:
-        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog)
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust)
         u0, start_kind = _start_point(prob, start, rng)
         p_start = par.from_unit(u0)
         start_cost = prob(u0)  # counted, so the start is always a candidate
@@ -423,7 +444,8 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     first_fail = None
     for cost, _, u in sorted(prob.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]:
         p_best = par.from_unit(u)
-        lens = par.to_lens(p_best).replace(name=f"lensforge {par.model} ({meth}, {crit}, seed {seed})")
+        lens = par.to_lens(p_best).replace(
+            name=f"lensforge {par.model} ({meth}, {crit}{', robust' if robust is not None else ''}, seed {seed})")
         feas = check_design(bench, lens, constraints, prob.poses, fast=False)
         if feas.ok:
             break
@@ -432,13 +454,19 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
         require_feasible(first_fail, f"optimised {par.model} design")
     S, z0, _ = sensitivity_from_model(feas.model)
     m = metrics_from_S(S, feas.model.noise_cov, bench, z0, weights)
+    nominal_value = criterion_value(crit, m, weights)
+    robust_record = None
+    if robust is not None:
+        rv = robust_value(bench, lens, robust, crit, weights, nominal=nominal_value)
+        robust_record = {**robust.to_dict(), "criterion": crit, **rv.to_dict()}
     settings = {"max_evals": evals, "n_starts": int(n_starts), "ftol": ftol, "time_limit_s": time_limit_s, **info}
     return Design(
         lens=lens, bench=bench, model=par.model, free=par.names,
         parameters={n: float(v) for n, v in zip(par.names, p_best)}, bounds=par.bounds_dict(),
         criterion=crit, weights=weights, constraints=constraints.to_dict(), feasibility=feas.to_dict(),
-        metrics={**metrics_dict(m, weights), "criterion_value": criterion_value(crit, m, weights)},
+        metrics={**metrics_dict(m, weights), "criterion_value": nominal_value},
         method=meth, seed=seed, settings=settings,
         start={"kind": start_kind, "parameters": [float(v) for v in p_start], "cost": float(start_cost)},
         history=prob.history, n_evals=prob.n_evals, wall_time_s=round(wall, 3), labels=par.labels(),
+        robust=robust_record,
     )
