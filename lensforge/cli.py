@@ -17,13 +17,13 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import importlib
-import json
 import sys
 from pathlib import Path
 
 import typer
 
 from .errors import LensforgeError
+from .fileio import dumps_json
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Design, export and verify freeform lenses for Shack-Hartmann pose estimation.")
@@ -41,19 +41,7 @@ def fail(message: str, code: int = 2):
 
 def emit_json(obj) -> None:
     """Machine-readable output on stdout."""
-    typer.echo(json.dumps(obj, indent=2, allow_nan=False, default=_json_default))
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+    typer.echo(dumps_json(obj))
 
 
 def info(message: str) -> None:

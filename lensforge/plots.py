@@ -29,7 +29,7 @@ def new_figure(*args, **kwargs):
 
 def save_figure(fig, path, dpi: int = 120) -> Path:
     """Write a figure as PNG atomically; returns the path."""
-    from .optics.bench import write_atomic
+    from .fileio import write_atomic
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")

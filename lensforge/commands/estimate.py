@@ -69,7 +69,7 @@ def register(app: typer.Typer) -> None:
 
         from ..cli import emit_json, info
         from ..errors import ConfigError
-        from ..optics.bench import write_atomic
+        from ..fileio import write_atomic
         from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
         from ._common import load_bench_arg, load_lens_arg
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import List, Optional
 
-import numpy as np
 import typer
 
 from ..optics.pose import DOF_NAMES

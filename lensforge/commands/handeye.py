@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import typer
 
 from ..errors import ConfigError
+from ..fileio import read_json
 
 
 def load_poses(path: str | Path) -> dict:
@@ -17,14 +17,7 @@ def load_poses(path: str | Path) -> dict:
     one for all) or "sigma_B": {"translation_mm", "rotation_rad"}. Returns keyword
     arguments for solve_handeye (A, B, sigma, cov_B). Raises ConfigError."""
     p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"poses file {p}: not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"poses file {p}: cannot be read ({e})") from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"poses file {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    data = read_json(p, "poses file")
     if not isinstance(data, dict):
         raise ConfigError(f"poses file {p}: expected a JSON object with keys units, A, B")
     units = data.get("units")

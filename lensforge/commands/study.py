@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import typer
@@ -22,10 +21,9 @@ def _fmt(v, unit, digits=3):
 
 
 def _write_json(path: Path, obj) -> None:
-    from ..cli import _json_default
-    from ..optics.bench import write_atomic
+    from ..fileio import dumps_json, write_atomic
 
-    write_atomic(path, json.dumps(obj, indent=2, allow_nan=False, default=_json_default))
+    write_atomic(path, dumps_json(obj))
 
 
 def register(app: typer.Typer) -> None:

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..optics.lens import Lens, paper_lens
-from ..optics.surfaces import ExtendedPolynomial, Polynomial, ZernikeSag, extended_monomial_exponents
+from ..optics.surfaces import ExtendedPolynomial, ZernikeSag, extended_monomial_exponents
 from ..optics.zernike import noll_to_nm
 
 __all__ = ["MODELS", "FREE_PRESETS", "Parameterisation", "parameterisation", "default_bound",

@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 
 from ..errors import ConfigError, LensforgeError
-from ..optics.bench import write_atomic
+from ..fileio import write_atomic
 from ..optics.lens import Lens
 from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
 

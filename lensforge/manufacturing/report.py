@@ -3,13 +3,12 @@
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import LensforgeError
-from ..optics.bench import write_atomic
+from ..fileio import dumps_json, write_atomic
 from ..optics.lens import Lens
 from .features import FeatureSpec
 from .mesh import StlExport, build_lens_mesh, check_mesh, save_3mf, save_stl
@@ -139,17 +138,5 @@ def export_lens(lens: Lens, out_dir, stem: str, stl: bool = True, step: bool = T
     rep = ExportReport(lens.name or stem, stl_res, step_res, pr, sl, mesh_check, rp, 0.0, tmf)
     rep = ExportReport(**{**rep.__dict__, "wall_s": time.perf_counter() - t0})
     if rp is not None:
-        write_atomic(rp, json.dumps(rep.to_dict(), indent=2, allow_nan=False, default=_json_default) + "\n")
+        write_atomic(rp, dumps_json(rep.to_dict()) + "\n")
     return rep
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

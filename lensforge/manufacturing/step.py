@@ -43,7 +43,7 @@ from OCP.TopoDS import TopoDS, TopoDS_Shape
 from OCP.TopTools import TopTools_ListOfShape
 
 from ..errors import ConfigError, LensforgeError
-from ..optics.bench import write_atomic
+from ..fileio import write_atomic
 from ..optics.lens import Lens
 from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
 from .mesh import features_from_args

@@ -27,15 +27,14 @@ draws of the full model (common random numbers for variance budgets).
 from __future__ import annotations
 
 import math
-import tomllib
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.special import gammaincinv
 
 from ..errors import ConfigError
-from ..optics.bench import write_atomic
+from ..fileio import read_toml, write_atomic
 from ..optics.lens import Lens
 from ..optics.materials import Material
 from ..optics.surfaces import CanonicalSurface, Freeform
@@ -273,16 +272,7 @@ class Tolerances:
 def load_tolerances(path) -> Tolerances:
     """Tolerances from a TOML file (missing keys keep the documented defaults)."""
     p = Path(path)
-    try:
-        with open(p, "rb") as fh:
-            d = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"tolerances file {p}: not found") from None
-    except OSError as e:
-        raise ConfigError(f"tolerances file {p}: cannot be read ({e})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"tolerances file {p}: not valid TOML ({e})") from None
-    return Tolerances.from_dict(d, where=f"tolerances file {p.name}")
+    return Tolerances.from_dict(read_toml(p, "tolerances file"), where=f"tolerances file {p.name}")
 
 
 def save_tolerances(tol: Tolerances, path) -> Path:

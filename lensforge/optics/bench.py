@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-import tempfile
-import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -20,6 +17,7 @@ import numpy as np
 import tomli_w
 
 from ..errors import ConfigError
+from ..fileio import read_toml, write_atomic
 
 __all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "load_bench", "save_bench", "write_atomic"]
 
@@ -240,39 +238,9 @@ def _from_dict(cls, d, where):
 
 def load_bench(path) -> Bench:
     """Read a bench TOML file; missing keys take the defaults."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            d = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"bench file {path}: not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"bench file {path}: not valid TOML ({e})") from None
+    d = read_toml(path, "bench file")
     d.pop("schema_version", None)
     return Bench.from_dict(d, "bench")
-
-
-def write_atomic(path, data: bytes | str) -> Path:
-    """Write a file atomically: temp file in the same folder, fsync, rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if isinstance(data, str):
-        data = data.encode()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def save_bench(bench: Bench, path) -> Path:

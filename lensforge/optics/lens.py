@@ -7,7 +7,6 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, LensGeometryError
+from ..fileio import read_json
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
@@ -233,12 +233,7 @@ def load_lens(source) -> tuple[Lens, dict]:
         raise ConfigError(
             f"lens: {str(source)!r} is neither a paper lens ({', '.join(sorted(PAPER_LENSES))}) nor an existing file"
         )
-    try:
-        data = json.loads(p.read_text())
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"lens file {p}: cannot be read ({e})") from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"lens file {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    data = read_json(p, "lens file")
     if not isinstance(data, dict):
         raise ConfigError(f"lens file {p}: expected a JSON object")
     return Lens.from_dict(data.get("lens", data), where=f"{p.name}:lens").validate(), data

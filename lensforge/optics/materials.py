@@ -8,14 +8,14 @@ source; uncertainties (1-sigma) travel with the material for tolerance studies.
 from __future__ import annotations
 
 import os
-import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ConfigError
+from ..fileio import read_toml
 
 __all__ = ["Material", "load_material", "materials_dir", "list_materials"]
 
@@ -80,11 +80,7 @@ class Material:
 
 @lru_cache(maxsize=None)
 def _load(path: str) -> Material:
-    try:
-        with open(path, "rb") as fh:
-            d = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"material file {path}: not valid TOML ({e})") from None
+    d = read_toml(path, "material file")
     allowed = {f for f in Material.__dataclass_fields__}
     unknown = set(d) - allowed
     if unknown:

@@ -11,7 +11,7 @@ bound (S^T R^-1 S)^-1 on the pose covariance.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .trace import CLIPPED, MISSED, NOT_AIMED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel
+from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel
 from .zernike import modes_up_to_order, zernike_gradient
 
 __all__ = ["LensletPupil", "lenslet_pupil", "ForwardModel", "ZernikeResult", "measure", "check_pose_range"]

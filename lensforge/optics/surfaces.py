@@ -22,7 +22,7 @@ Sag is along +z of the surface's vertex frame; lengths in mm.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import numpy as np

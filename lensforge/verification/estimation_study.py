@@ -25,12 +25,14 @@ import io
 import json
 import time
 import warnings
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import ConfigError, PupilError, TraceError
-from ..optics.bench import Bench, write_atomic
+from ..fileio import write_atomic
+from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import sensitivity_from_model

@@ -30,12 +30,11 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.linalg import solve_triangular
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError, LensforgeError

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..optics.bench import write_atomic
+from ..fileio import write_atomic
 
 __all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget"]
 
