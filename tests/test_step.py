@@ -51,3 +51,19 @@ def test_step_bad_goal(zernike, tmp_path):
     with pytest.raises(ConfigError, match="deviation_goal_mm"):
         export_step(zernike, tmp_path / "x.step", deviation_goal_mm=0)
     assert not (tmp_path / "x.step").exists()
+
+
+def test_step_lens_with_piston_terms_off_its_vertex_planes(tmp_path):
+    # Zernike piston/defocus terms move both surfaces ~4 mm off their vertex planes, so the
+    # {O} origin lies outside the glass; the exporter must still keep the lens body
+    import lensforge as lf
+    from lensforge.manufacturing.features import lens_volume
+    from lensforge.manufacturing.step import export_step
+    from lensforge.optics.surfaces import ZernikeSag
+
+    lens = lf.Lens(front=ZernikeSag(coefficients=(4.0, 0.0, 0.0, -0.1), norm_radius=12.7),
+                   back=ZernikeSag(coefficients=(4.5, 0.0, 0.0, -0.05), norm_radius=12.7),
+                   thickness=3.0, aperture=20.0, material="Formlabs-Clear").validate()
+    assert lens.front.sag(0.0, 0.0) > 1.5 + 1.0  # front surface behind the {O} origin
+    r = export_step(lens, tmp_path / "p.step")
+    assert r.ok and abs(r.reimport_volume_mm3 / lens_volume(lens) - 1) < 1e-6

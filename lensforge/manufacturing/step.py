@@ -212,9 +212,12 @@ def build_step_solid(lens: Lens, features: FeatureSpec | None = None, deviation_
     sp.Build()
     if not sp.IsDone():
         raise LensforgeError("step: splitting the edge cylinder by the surfaces failed; please report this")
+    # a point surely in the glass: halfway between the two surfaces on the axis (the {O}
+    # origin is not, when piston/defocus terms move a surface off its vertex plane)
+    z_in = 0.5 * ((-half + float(lens.front.sag(0.0, 0.0))) + (half + float(lens.back.sag(0.0, 0.0))))
     inside = []
     for s in _solids(sp.Shape()):
-        cls = BRepClass3d_SolidClassifier(s, gp_Pnt(0, 0, 0), 1e-7)
+        cls = BRepClass3d_SolidClassifier(s, gp_Pnt(0, 0, z_in), 1e-7)
         if cls.State() == TopAbs_IN:
             inside.append(s)
     if len(inside) != 1:
