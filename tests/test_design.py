@@ -144,3 +144,16 @@ def test_design_file_round_trip(bench, tmp_path):
     bad.write_text("{not json")
     with pytest.raises(ConfigError, match="not valid JSON"):
         load_design(bad)
+
+
+def test_slope_constraint_reported():
+    import lensforge as lf
+    from lensforge.design.constraints import Constraints, check_design
+
+    bench = lf.Bench.default()
+    poly = lf.paper_lens("polynomial")  # back rim slope 46.6 deg
+    assert check_design(bench, poly, Constraints()).ok
+    f = check_design(bench, poly, Constraints(max_slope_deg=45.0))
+    assert not f.ok
+    (v,) = [v for v in f.violations if v.constraint == "back_slope"]
+    assert v.value == pytest.approx(46.6, abs=0.1) and "max_slope_deg" in v.message

@@ -40,6 +40,7 @@ def register(app: typer.Typer) -> None:
         min_thickness: float = typer.Option(1.0, "--min-thickness", help="minimum centre and edge thickness (mm)"),
         range_mm: float = typer.Option(1.0, "--range-mm", help="working range, translation half-width (mm)"),
         range_deg: float = typer.Option(1.0, "--range-deg", help="working range, rotation half-width (deg)"),
+        max_slope: float = typer.Option(50.0, "--max-slope", help="steepest surface slope in the clear aperture (deg; 90 = off)"),
         time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
         bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in)"),
         robust: Optional[Path] = typer.Option(None, "--robust", help="tolerance TOML: minimise the expected criterion over as-built draws (tolerance-robust design)"),
@@ -69,7 +70,7 @@ def register(app: typer.Typer) -> None:
             spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
                               statistic=robust_statistic)
         cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
-                           range_rad=math.radians(range_deg))
+                           range_rad=math.radians(range_deg), max_slope_deg=max_slope)
         d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
                             free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
                             n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,

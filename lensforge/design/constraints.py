@@ -39,7 +39,11 @@ class Constraints:
     min_center_mm / min_edge_mm: minimum axial thickness on the axis / elsewhere;
     range_mm / range_rad: half-width of the working pose range per DOF (0 disables the
     range check, the nominal pose is always checked); tir: forbid total internal
-    reflection.
+    reflection; max_slope_deg: steepest surface slope allowed inside the clear aperture
+    (ASSUMPTION: 50 deg -- steeper surfaces are hard to hand-polish and to measure
+    with a profilometer, and their SLA staircase grows as tan(slope); the paper's
+    polynomial lens, printed and polished there, reaches 46.6 deg at its back rim).
+    90 disables the check.
     """
 
     min_center_mm: float = 1.0
@@ -47,8 +51,11 @@ class Constraints:
     range_mm: float = 1.0
     range_rad: float = math.radians(1.0)
     tir: bool = True
+    max_slope_deg: float = 50.0
 
     def __post_init__(self):
+        if not (isinstance(self.max_slope_deg, (int, float)) and 0 < self.max_slope_deg <= 90):
+            raise ConfigError(f"constraints.max_slope_deg: must be in (0, 90] deg, got {self.max_slope_deg!r}")
         for f in ("min_center_mm", "min_edge_mm", "range_mm", "range_rad"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -175,6 +182,18 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                             f"edge/minimum thickness {t_min:.3f} mm < {c.min_edge_mm} mm (constraints.min_edge_mm); "
                             "raise the thickness or reduce the surface sags"))
         pen += (c.min_edge_mm - t_min) / max(c.min_edge_mm, 1e-3)
+    if c.max_slope_deg < 90.0:
+        xa, ya = _polar_grid(0.5 * lens.aperture)
+        limit = math.tan(math.radians(c.max_slope_deg))
+        for side in ("front", "back"):
+            gx, gy = getattr(lens, side).gradient(xa, ya)
+            steepest = float(np.max(np.hypot(gx, gy)))
+            if steepest > limit:
+                vs.append(Violation(f"{side}_slope", math.degrees(math.atan(steepest)), c.max_slope_deg,
+                                    f"{side} surface slope {math.degrees(math.atan(steepest)):.1f} deg > "
+                                    f"{c.max_slope_deg} deg inside the clear aperture (constraints.max_slope_deg); "
+                                    "reduce the curvature/freeform terms or relax the limit"))
+                pen += steepest / limit - 1.0
     if vs:
         return Feasibility(False, tuple(vs), 10.0 + pen, t_min, t_c)
     model = ForwardModel(bench, lens, validate=False)
