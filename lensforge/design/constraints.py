@@ -42,7 +42,7 @@ class Constraints:
     reflection; max_slope_deg: steepest surface slope allowed inside the clear aperture
     (ASSUMPTION: 50 deg -- steeper surfaces are hard to hand-polish and to measure
     with a profilometer, and their SLA staircase grows as tan(slope); the paper's
-    polynomial lens, printed and polished there, reaches 46.6 deg at its back rim).
+    polynomial lens, printed and polished there, reaches 46.8 deg at its back rim).
     90 disables the check.
     """
 
