@@ -4,7 +4,6 @@ baseline's overconfidence, rank loss and bad inputs."""
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import pytest

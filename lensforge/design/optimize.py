@@ -24,7 +24,6 @@ import contextlib
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass
 
 import numpy as np
 

@@ -76,7 +76,6 @@ def self_calibrate(bench, lens: Lens, z, A, X0, Z0, T_SO_nominal, names=DEFAULT_
     names = tuple(names)
     k = len(names)
     ps = np.array([(prior_sigma or PRIOR_SIGMA)[n] for n in names], float)
-    n = len(A)
     nominal = ForwardModel(bench, lens)
     Linv = np.linalg.inv(np.linalg.cholesky(nominal.noise_cov))
     Tn_inv = np.linalg.inv(T_SO_nominal)
