@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..optics.bench import Bench, write_atomic
+from ..fileio import read_json, write_atomic
+from ..optics.bench import Bench
 from ..optics.lens import Lens
 
 __all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
@@ -213,12 +214,4 @@ def save_design(design: Design, path) -> Path:
 def load_design(path) -> Design:
     """Read a design JSON file written by ``save_design``."""
     p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"design file {p}: not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"design file {p}: cannot be read ({e})") from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"design file {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
-    return Design.from_dict(data, where=f"{p.name}")
+    return Design.from_dict(read_json(p, "design file"), where=f"{p.name}")

@@ -189,7 +189,12 @@ def lens_volume(lens: Lens, n_r: int = 64, n_phi: int = 256) -> float:
 
 def _segment_volume(lens: Lens, angle: float, u_in: float, half_width: float, n: int = 48) -> float:
     """Integral of thickness over {u > u_in, |v| < half_width} inside the edge disc (mm^3)."""
-    R = 0.5 * lens.edge_diameter
+    return _segment_integral(0.5 * lens.edge_diameter, angle, u_in, half_width, lens.thickness_at, n)
+
+
+def _segment_integral(R: float, angle: float, u_in: float, half_width: float, f, n: int = 48) -> float:
+    """Integral of f(x, y) over {u > u_in, |v| < half_width} inside the disc of radius R,
+    (u, v) rotated by ``angle`` from (x, y); Gauss-Legendre in both directions."""
     c = np.sqrt(max(R * R - u_in * u_in, 0.0))
     vmax = min(half_width, c)
     if vmax <= 0:
@@ -206,20 +211,12 @@ def _segment_volume(lens: Lens, angle: float, u_in: float, half_width: float, n:
     ca, sa = np.cos(angle), np.sin(angle)
     vv = v[:, None]
     x, y = uu * ca - vv * sa, uu * sa + vv * ca
-    return float(np.sum(dv[:, None] * wu * lens.thickness_at(x, y)))
+    return float(np.sum(dv[:, None] * wu * f(x, y)))
 
 
 def _disc_rect_area(R: float, u_in: float, half_width: float, n: int = 64) -> float:
     """Area of {u > u_in, |v| < half_width} inside the disc of radius R (mm^2)."""
-    c = np.sqrt(max(R * R - u_in * u_in, 0.0))
-    vmax = min(half_width, c)
-    if vmax <= 0:
-        return 0.0
-    tm = np.arcsin(vmax / c)
-    g, gw = np.polynomial.legendre.leggauss(n)
-    th = tm * g
-    v = c * np.sin(th)
-    return float(np.sum(tm * gw * c * np.cos(th) * (np.sqrt(R * R - v * v) - u_in)))
+    return _segment_integral(R, 0.0, u_in, half_width, lambda x, y: np.ones_like(x), n)
 
 
 def feature_volume_change(lens: Lens, boxes: list[Box]) -> float:

@@ -18,6 +18,7 @@ largest one *evaluated* that meets the target (conservative).
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 
@@ -87,7 +88,6 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
                          workers: int | None = 0, scheduler: str | None = None, client=None,
                          progress: bool = False) -> list[SensitivityRow]:
     """Rows "none" (noise only), one per component (alone, at its given size), "all"."""
-    from .runner import dask_client
     from .study import resolve_lens, resolve_tolerances
 
     lens, bench = resolve_lens(lens, bench)
@@ -96,28 +96,27 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
         raise ConfigError("tolerances: the sensitivity analysis needs a tolerance model")
     config = config or StudyConfig()
     rows = []
-    with (_nullctx(client) if client is not None or workers == 0 and scheduler is None
-          else dask_client(workers, scheduler)) as cl:
-        def run(t):
-            return verify(lens, t, n_lenses, seed, bench, config=config, workers=0 if cl is None else None,
-                          client=cl, progress=progress)
-
-        rows.append(_row("none", run(None)))
+    with _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress) as run:
+        rows.append(_row("none", run(None, config)))
         for name in tol.component_names():
-            rows.append(_row(name, run(tol.only(name))))
-        rows.append(_row("all", run(tol)))
+            rows.append(_row(name, run(tol.only(name), config)))
+        rows.append(_row("all", run(tol, config)))
     return rows
 
 
-class _nullctx:
-    def __init__(self, v):
-        self.v = v
+@contextmanager
+def _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress):
+    """Yield run(tolerances, config) -> StudyResult, all runs sharing one Dask client (or
+    in-process when workers == 0 and no scheduler/client is given), with common random numbers."""
+    from .runner import dask_client
 
-    def __enter__(self):
-        return self.v
+    own = client is None and not (workers == 0 and scheduler is None)
+    with (dask_client(workers, scheduler) if own else nullcontext(client)) as cl:
+        def run(t, config):
+            return verify(lens, t, n_lenses, seed, bench, config=config, workers=0 if cl is None else None,
+                          client=cl, progress=progress)
 
-    def __exit__(self, *a):
-        return False
+        yield run
 
 
 @dataclass(frozen=True)
@@ -234,7 +233,6 @@ def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: fl
     lens may make the calibration at most k times worse than a perfect lens)."""
     from dataclasses import replace
 
-    from .runner import dask_client
     from .study import resolve_lens, resolve_tolerances
 
     lens, bench = resolve_lens(lens, bench)
@@ -247,11 +245,10 @@ def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: fl
         if c not in tol.component_names():
             raise ConfigError(f"component: unknown {c!r}; use one of {list(tol.component_names())}")
     rows = []
-    with (_nullctx(client) if client is not None or workers == 0 and scheduler is None
-          else dask_client(workers, scheduler)) as cl:
+    with _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress) as run:
+
         def study(t):
-            return verify(lens, t, n_lenses, seed, bench, config=config, workers=0 if cl is None else None,
-                          client=cl, progress=progress)
+            return run(t, config)  # config is re-bound below when the target is relative to noise
 
         noise = study(None)
         if relative_to_noise is not None:
