@@ -1,25 +1,89 @@
 """Pose vectors x = (tx, ty, tz, rx, ry, rz) and homogeneous transforms.
 
 Translation in mm, rotation as a rotation vector (axis * angle, rad),
-R = exp([r]x) (scipy Rotation.from_rotvec). ^A T_B maps B coordinates to A.
+R = exp([r]x) (the same as scipy Rotation.from_rotvec). ^A T_B maps B coordinates
+to A. Vectorised quaternion code: these run in every estimator and hand-eye
+iteration, where scipy's per-call overhead dominated.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-__all__ = ["pose_to_matrix", "matrix_to_pose", "rotations", "DOF_NAMES", "DOF_UNITS"]
+__all__ = ["pose_to_matrix", "matrix_to_pose", "rotations", "rotvecs", "skew", "DOF_NAMES", "DOF_UNITS"]
 
 DOF_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 DOF_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
 
 
-def rotations(rotvecs) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) in rad."""
-    rv = np.asarray(rotvecs, dtype=float)
-    flat = rv.reshape(-1, 3)
-    return Rotation.from_rotvec(flat).as_matrix().reshape(rv.shape[:-1] + (3, 3))
+def skew(v) -> np.ndarray:
+    """Cross-product matrices [v]x (..., 3, 3) of vectors (..., 3)."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def rotations(rotvecs_) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) in rad, through the unit
+    quaternion (orthonormal to machine precision, as scipy's from_rotvec)."""
+    r = np.asarray(rotvecs_, dtype=float)
+    th = np.linalg.norm(r, axis=-1)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    s = np.where(small, 0.5 - th**2 / 48.0, np.sin(0.5 * ths) / ths)  # sin(th/2) / th
+    x, y, z = (r[..., i] * s for i in range(3))
+    w = np.cos(0.5 * th)
+    R = np.empty(r.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - z * w)
+    R[..., 0, 2] = 2 * (x * z + y * w)
+    R[..., 1, 0] = 2 * (x * y + z * w)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - x * w)
+    R[..., 2, 0] = 2 * (x * z - y * w)
+    R[..., 2, 1] = 2 * (y * z + x * w)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def rotvecs(R) -> np.ndarray:
+    """Rotation vectors (..., 3) of rotation matrices (..., 3, 3), via quaternions with
+    Shepperd's branch choice (accurate near the identity and near pi)."""
+    R = np.asarray(R, dtype=float)
+    m = R.reshape(-1, 3, 3)
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    k = np.argmax(np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1), axis=1)
+    q = np.empty((m.shape[0], 4))  # (x, y, z, w)
+    i0 = k == 0
+    if i0.any():
+        t = m[i0]
+        w = 0.5 * np.sqrt(1.0 + tr[i0])
+        q[i0, 3] = w
+        q[i0, 0] = (t[:, 2, 1] - t[:, 1, 2]) / (4 * w)
+        q[i0, 1] = (t[:, 0, 2] - t[:, 2, 0]) / (4 * w)
+        q[i0, 2] = (t[:, 1, 0] - t[:, 0, 1]) / (4 * w)
+    for a in range(3):
+        sel = k == a + 1
+        if not sel.any():
+            continue
+        b, c = (a + 1) % 3, (a + 2) % 3
+        t = m[sel]
+        qa = 0.5 * np.sqrt(1.0 + t[:, a, a] - t[:, b, b] - t[:, c, c])
+        q[sel, a] = qa
+        q[sel, b] = (t[:, b, a] + t[:, a, b]) / (4 * qa)
+        q[sel, c] = (t[:, c, a] + t[:, a, c]) / (4 * qa)
+        q[sel, 3] = (t[:, c, b] - t[:, b, c]) / (4 * qa)
+    q[q[:, 3] < 0] *= -1.0
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    vn = np.linalg.norm(q[:, :3], axis=1)
+    ang = 2.0 * np.arctan2(vn, q[:, 3])
+    small = vn < 1e-8
+    scale = np.where(small, 2.0 / np.maximum(q[:, 3], 1e-300) * (1.0 + vn**2 / 3.0),
+                     ang / np.where(small, 1.0, vn))
+    return (q[:, :3] * scale[:, None]).reshape(R.shape[:-2] + (3,))
 
 
 def pose_to_matrix(x) -> np.ndarray:
@@ -35,6 +99,4 @@ def pose_to_matrix(x) -> np.ndarray:
 def matrix_to_pose(T) -> np.ndarray:
     """Pose vector(s) (..., 6) of 4x4 transform(s)."""
     T = np.asarray(T, dtype=float)
-    flat = T.reshape(-1, 4, 4)
-    r = Rotation.from_matrix(flat[:, :3, :3]).as_rotvec()
-    return np.concatenate([flat[:, :3, 3], r], axis=1).reshape(T.shape[:-2] + (6,))
+    return np.concatenate([T[..., :3, 3], rotvecs(T[..., :3, :3])], axis=-1)

@@ -187,6 +187,11 @@ class ForwardModel:
         """Zernike noise covariance R (m, m) in um^2."""
         return self.pupil.noise_covariance(self.bench.noise.slope_sigma_urad * 1e-6)
 
+    @cached_property
+    def whitener(self) -> np.ndarray:
+        """L^-1 with R = L L^T (1/um): whitened residuals w = L^-1 (z - h(x)) have unit covariance."""
+        return np.linalg.inv(np.linalg.cholesky(self.noise_cov))
+
     def evaluate(self, poses, uv0=None, check_range: bool = True) -> ZernikeResult:
         """Noise-free Zernike coefficients for poses (P, 6); never raises on bad rays."""
         poses = np.atleast_2d(np.asarray(poses, dtype=float))

@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from ..errors import CalibrationError
+from ..optics.pose import matrix_to_pose, pose_to_matrix, rotations, skew
 
 __all__ = [
     "HandEyeResult",
@@ -86,75 +86,6 @@ def invert_poses(T) -> np.ndarray:
     return out
 
 
-def _skew(v) -> np.ndarray:
-    v = np.asarray(v, dtype=float)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors of rotation matrices (n, 3, 3) via quaternions (Shepperd's
-    branch choice; accurate near the identity and near pi). Same result as scipy's
-    Rotation.from_matrix(R).as_rotvec() for orthonormal R, several times faster."""
-    m = R
-    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
-    k = np.argmax(cand, axis=1)
-    q = np.empty((R.shape[0], 4))  # (x, y, z, w)
-    i0 = k == 0
-    if i0.any():
-        t = m[i0]
-        w = 0.5 * np.sqrt(1.0 + tr[i0])
-        q[i0, 3] = w
-        q[i0, 0] = (t[:, 2, 1] - t[:, 1, 2]) / (4 * w)
-        q[i0, 1] = (t[:, 0, 2] - t[:, 2, 0]) / (4 * w)
-        q[i0, 2] = (t[:, 1, 0] - t[:, 0, 1]) / (4 * w)
-    for a in range(3):
-        sel = k == a + 1
-        if not sel.any():
-            continue
-        b, c = (a + 1) % 3, (a + 2) % 3
-        t = m[sel]
-        qa = 0.5 * np.sqrt(1.0 + t[:, a, a] - t[:, b, b] - t[:, c, c])
-        q[sel, a] = qa
-        q[sel, b] = (t[:, b, a] + t[:, a, b]) / (4 * qa)
-        q[sel, c] = (t[:, c, a] + t[:, a, c]) / (4 * qa)
-        q[sel, 3] = (t[:, c, b] - t[:, b, c]) / (4 * qa)
-    q[q[:, 3] < 0] *= -1.0
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    vn = np.linalg.norm(q[:, :3], axis=1)
-    ang = 2.0 * np.arctan2(vn, q[:, 3])
-    small = vn < 1e-8
-    scale = np.where(small, 2.0 / np.maximum(q[:, 3], 1e-300) * (1.0 + vn**2 / 3.0),
-                     ang / np.where(small, 1.0, vn))
-    return q[:, :3] * scale[:, None]
-
-
-def _log(T: np.ndarray) -> np.ndarray:
-    """Pose vectors (n, 6) of transforms (n, 4, 4): (t, rotvec), as matrix_to_pose."""
-    return np.concatenate([T[:, :3, 3], _rotvec(T[:, :3, :3])], axis=1)
-
-
-def _exp(x: np.ndarray) -> np.ndarray:
-    """Transforms of pose vectors (..., 6) (Rodrigues), as pose_to_matrix."""
-    x = np.asarray(x, dtype=float)
-    r = x[..., 3:]
-    th = np.linalg.norm(r, axis=-1)[..., None, None]
-    K = _skew(r)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
-    T = np.zeros(x.shape[:-1] + (4, 4))
-    T[..., :3, :3] = np.eye(3) + a * K + b * (K @ K)
-    T[..., :3, 3] = x[..., :3]
-    T[..., 3, 3] = 1.0
-    return T
-
-
 def adjoint(T) -> np.ndarray:
     """6x6 adjoint(s) of T for xi = (rho, omega): T P(xi) T^-1 = P(Ad_T xi) to first order."""
     T = np.asarray(T, dtype=float)
@@ -162,7 +93,7 @@ def adjoint(T) -> np.ndarray:
     t = T[..., :3, 3]
     Ad = np.zeros(T.shape[:-2] + (6, 6))
     Ad[..., :3, :3] = R
-    Ad[..., :3, 3:] = _skew(t) @ R
+    Ad[..., :3, 3:] = skew(t) @ R
     Ad[..., 3:, 3:] = R
     return Ad
 
@@ -171,7 +102,7 @@ def _right_jacobian_so3(r) -> np.ndarray:
     """Right Jacobian J_r(r) of SO(3): R(r + dr) = R(r) Exp(J_r(r) dr) to first order."""
     r = np.asarray(r, dtype=float)
     th = np.linalg.norm(r)
-    K = _skew(r)
+    K = skew(r)
     if th < 1e-8:
         return np.eye(3) - 0.5 * K + K @ K / 6.0
     return (np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K)
@@ -185,7 +116,7 @@ def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:
     """
     x = np.asarray(x, dtype=float)
     M = np.zeros((6, 6))
-    M[:3, :3] = Rotation.from_rotvec(x[3:]).as_matrix().T
+    M[:3, :3] = rotations(x[3:]).T
     M[3:, 3:] = _right_jacobian_so3(x[3:])
     return M @ np.asarray(cov_x, dtype=float) @ M.T
 
@@ -291,7 +222,7 @@ def _whiteners(S: np.ndarray, where: str) -> np.ndarray:
 def _residuals(A, B, X, Z) -> np.ndarray:
     """e_i = log((Z B_i)^-1 A_i X), (n, 6) in (mm, rad), in {O} axes."""
     E = invert_poses(Z @ B) @ A @ X
-    return _log(E)
+    return matrix_to_pose(E)
 
 
 def handeye_jacobian(B) -> np.ndarray:
@@ -598,7 +529,7 @@ def _cost(A, B, X, Z, Wh):
 def _jr_inv_batch(r: np.ndarray, left: bool = False) -> np.ndarray:
     """Inverse right (or left) Jacobians of SO(3) for rotation vectors r (n, 3)."""
     th = np.linalg.norm(r, axis=1)
-    K = _skew(-r if left else r)
+    K = skew(-r if left else r)
     small = th < 1e-4
     ths = np.where(small, 1.0, th)
     c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
@@ -609,7 +540,7 @@ def _jr_inv_batch(r: np.ndarray, left: bool = False) -> np.ndarray:
 def _param_jac(xi: np.ndarray) -> np.ndarray:
     """J_P(xi): P(xi + d) = P(xi) P(J_P(xi) d) to first order (6x6)."""
     M = np.zeros((6, 6))
-    M[:3, :3] = _exp(xi)[:3, :3].T
+    M[:3, :3] = pose_to_matrix(xi)[:3, :3].T
     M[3:, 3:] = _right_jacobian_so3(xi[3:])
     return M
 
@@ -621,22 +552,22 @@ def _refine(A, B, X0, Z0, Wh, max_nfev):
     AdBinv = adjoint(invert_poses(B))
 
     def fun(p):
-        X = X0 @ _exp(p[:6])
-        Z = Z0 @ _exp(p[6:])
+        X = X0 @ pose_to_matrix(p[:6])
+        Z = Z0 @ pose_to_matrix(p[6:])
         return np.einsum("nij,nj->ni", Wh, _residuals(A, B, X, Z)).reshape(-1)
 
     def jac(p):
-        X = X0 @ _exp(p[:6])
-        Z = Z0 @ _exp(p[6:])
+        X = X0 @ pose_to_matrix(p[:6])
+        Z = Z0 @ pose_to_matrix(p[6:])
         E = invert_poses(Z @ B) @ A @ X
-        e = _log(E)
+        e = matrix_to_pose(E)
         Jx = np.zeros((n, 6, 6))
         Jx[:, :3, :3] = E[:, :3, :3]
         Jx[:, 3:, 3:] = _jr_inv_batch(e[:, 3:])
         Jx = Jx @ _param_jac(p[:6])
         L = np.zeros((n, 6, 6))
         L[:, :3, :3] = np.eye(3)
-        L[:, :3, 3:] = -_skew(e[:, :3])
+        L[:, :3, 3:] = -skew(e[:, :3])
         L[:, 3:, 3:] = _jr_inv_batch(e[:, 3:], left=True)
         Jz = -(L @ AdBinv) @ _param_jac(p[6:])
         J = np.concatenate([Jx, Jz], axis=2)
@@ -644,7 +575,7 @@ def _refine(A, B, X0, Z0, Wh, max_nfev):
 
     sol = least_squares(fun, np.zeros(12), jac=jac, method="lm", xtol=1e-12, ftol=1e-12,
                         gtol=1e-12, max_nfev=max_nfev)
-    return X0 @ _exp(sol.x[:6]), Z0 @ _exp(sol.x[6:]), sol
+    return X0 @ pose_to_matrix(sol.x[:6]), Z0 @ pose_to_matrix(sol.x[6:]), sol
 
 
 def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degenerate: str = "raise",
@@ -724,7 +655,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
             Wh = _whiteners(covs(X), "noise model")
             X_new, Z_new, sol = _refine(A, B, X, Z, Wh, max_nfev)
             iterations += int(sol.nfev)
-            step = np.abs(_log(invert_poses(np.stack([X, Z])) @ np.stack([X_new, Z_new]))).max()
+            step = np.abs(matrix_to_pose(invert_poses(np.stack([X, Z])) @ np.stack([X_new, Z_new]))).max()
             X, Z = X_new, Z_new
             converged = sol.status > 0
             if not noise_given or sigma is None or step < 1e-8:

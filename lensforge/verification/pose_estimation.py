@@ -164,7 +164,7 @@ class _Whitened:
     def __init__(self, model: ForwardModel, z: np.ndarray, jac: str):
         self.model = model
         self.z = z
-        self.Linv = np.linalg.inv(np.linalg.cholesky(model.noise_cov))  # whitening: r = Linv d
+        self.Linv = model.whitener  # whitening: r = Linv d
         self.h = np.asarray(model.bench.fd_steps, dtype=float)
         self.jac_mode = jac
         self.n_evals = 0

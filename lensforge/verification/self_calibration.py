@@ -77,7 +77,7 @@ def self_calibrate(bench, lens: Lens, z, A, X0, Z0, T_SO_nominal, names=DEFAULT_
     k = len(names)
     ps = np.array([(prior_sigma or PRIOR_SIGMA)[n] for n in names], float)
     nominal = ForwardModel(bench, lens)
-    Linv = np.linalg.inv(np.linalg.cholesky(nominal.noise_cov))
+    Linv = nominal.whitener
     Tn_inv = np.linalg.inv(T_SO_nominal)
     models: dict = {}
 

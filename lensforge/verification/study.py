@@ -164,7 +164,7 @@ def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int =
     x = np.array(np.atleast_2d(x0), dtype=float)
     P = x.shape[0]
     bench = model.bench
-    L = np.linalg.inv(np.linalg.cholesky(model.noise_cov))  # whitening matrix L^-1
+    L = model.whitener
     D = np.asarray(bench.pose_scales, dtype=float)
     n_evals = 0
 
