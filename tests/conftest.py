@@ -12,3 +12,12 @@ def bench():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+def run_cli(*args, cwd=None):
+    """Run ``python -m lensforge ARGS`` in a subprocess (stdout, stderr, returncode)."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "lensforge", *args], capture_output=True, text=True,
+                          timeout=300, cwd=cwd)

@@ -7,7 +7,12 @@ import math
 import pytest
 
 from lensforge.manufacturing.tolerances import Tolerances
-from lensforge.verification.budget import scaled_all, search_scale, sensitivity_analysis, tolerance_budget
+from lensforge.verification.budget import (
+    scaled_all,
+    search_scale,
+    sensitivity_analysis,
+    tolerance_budget,
+)
 from lensforge.verification.study import StudyConfig
 
 

@@ -4,9 +4,17 @@ import numpy as np
 import pytest
 
 from lensforge.errors import ConfigError
-from lensforge.verification.calib_design import candidate_poses, design_poses, predicted_uncertainty
+from lensforge.verification.calib_design import (
+    candidate_poses,
+    design_poses,
+    predicted_uncertainty,
+)
 from lensforge.verification.handeye import handeye_fisher
-from lensforge.verification.robot import lens_pose_matrix, paper_scene, random_lens_poses
+from lensforge.verification.robot import (
+    lens_pose_matrix,
+    paper_scene,
+    random_lens_poses,
+)
 
 COV_B = np.diag([1e-3] * 3 + [1e-5] * 3) ** 2  # ASSUMPTION: ~pose-estimation CRLB
 

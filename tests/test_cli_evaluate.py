@@ -1,12 +1,7 @@
 import json
-import subprocess
-import sys
 
 import pytest
-
-
-def run(*args):
-    return subprocess.run([sys.executable, "-m", "lensforge", *args], capture_output=True, text=True, timeout=300)
+from conftest import run_cli as run
 
 
 def test_evaluate_json():

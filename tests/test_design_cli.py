@@ -1,15 +1,9 @@
 """CLI: design, plot, compare (happy path and one-line errors)."""
 
 import json
-import subprocess
-import sys
 
 import pytest
-
-
-def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lensforge", *args], capture_output=True, text=True, timeout=300,
-                          cwd=cwd)
+from conftest import run_cli as run
 
 
 def test_design_plot_compare_evaluate(tmp_path):

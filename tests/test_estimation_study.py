@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 import lensforge as lf
 from lensforge.errors import ConfigError
-from lensforge.verification.estimation_study import (format_table, run_estimation_study, save_study, study_lens,
-                                                     study_to_dict)
+from lensforge.verification.estimation_study import (
+    format_table,
+    run_estimation_study,
+    save_study,
+    study_lens,
+    study_to_dict,
+)
 from lensforge.verification.initial_poses import InitialPoseModel
 
 
@@ -85,9 +88,7 @@ def test_study_bad_args():
         run_estimation_study(b, {})
 
 
-def _run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lensforge", *args], capture_output=True, text=True, timeout=300,
-                          cwd=cwd)
+from conftest import run_cli as _run
 
 
 def test_cli_estimate_study_json(tmp_path):

@@ -1,17 +1,15 @@
 """``lensforge export``: files, report keys, and one-line errors."""
 
 import json
-import subprocess
-import sys
 
 import pytest
+from conftest import run_cli
 
 from lensforge.manufacturing.slicer import find_prusa_slicer
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "lensforge", "export", *args], capture_output=True, text=True,
-                          timeout=300)
+    return run_cli("export", *args)
 
 
 def test_export_stl_step_report(tmp_path):

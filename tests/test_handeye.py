@@ -8,9 +8,19 @@ import pytest
 from lensforge.errors import CalibrationError
 from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
 from lensforge.verification.handeye import (
-    METHODS, adjoint, handeye_fisher, invert_poses, pose_vector_cov_to_right, solve_handeye,
+    METHODS,
+    adjoint,
+    handeye_fisher,
+    invert_poses,
+    pose_vector_cov_to_right,
+    solve_handeye,
 )
-from lensforge.verification.robot import RobotNoise, paper_scene, random_lens_poses, simulate_calibration
+from lensforge.verification.robot import (
+    RobotNoise,
+    paper_scene,
+    random_lens_poses,
+    simulate_calibration,
+)
 
 # lens-pose noise of the order of the pose-estimation CRLB (1 um, 10 urad; ASSUMPTION for tests)
 COV_B = np.diag([1e-3] * 3 + [1e-5] * 3) ** 2

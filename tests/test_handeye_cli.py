@@ -7,7 +7,11 @@ import sys
 import numpy as np
 import pytest
 
-from lensforge.verification.robot import paper_scene, random_lens_poses, simulate_calibration
+from lensforge.verification.robot import (
+    paper_scene,
+    random_lens_poses,
+    simulate_calibration,
+)
 
 COV_B = np.diag([1e-3] * 3 + [1e-5] * 3) ** 2
 

@@ -1,14 +1,19 @@
 """Lens mesh: watertight/manifold at several resolutions, measured chord error, volume, features."""
 
+import manifold3d as m3
 import numpy as np
 import pytest
 import trimesh
-import manifold3d as m3
 
 import lensforge as lf
 from lensforge.errors import ConfigError, LensGeometryError
 from lensforge.manufacturing.features import FeatureSpec, lens_volume
-from lensforge.manufacturing.mesh import build_lens_mesh, check_mesh, disc_triangulation, export_stl
+from lensforge.manufacturing.mesh import (
+    build_lens_mesh,
+    check_mesh,
+    disc_triangulation,
+    export_stl,
+)
 
 
 @pytest.fixture(scope="module")

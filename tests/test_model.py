@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 import lensforge as lf
-from lensforge.errors import ConfigError, LensGeometryError, PoseRangeError, PupilError, TraceError
+from lensforge.errors import (
+    ConfigError,
+    LensGeometryError,
+    PoseRangeError,
+    PupilError,
+    TraceError,
+)
 from lensforge.optics.materials import Material
 from lensforge.optics.shack_hartmann import ForwardModel, lenslet_pupil
 from lensforge.optics.surfaces import Conic, ZernikeSag

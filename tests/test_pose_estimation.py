@@ -12,8 +12,16 @@ import lensforge as lf
 from lensforge.errors import ConfigError, PoseRangeError, PupilError, RankError
 from lensforge.optics.sensitivity import metrics
 from lensforge.optics.shack_hartmann import ForwardModel
-from lensforge.verification.initial_poses import InitialPoseModel, prior_covariance, sample_true_poses
-from lensforge.verification.pose_estimation import UnobservableWarning, estimate_pose, estimate_pose_model
+from lensforge.verification.initial_poses import (
+    InitialPoseModel,
+    prior_covariance,
+    sample_true_poses,
+)
+from lensforge.verification.pose_estimation import (
+    UnobservableWarning,
+    estimate_pose,
+    estimate_pose_model,
+)
 
 X_TRUE = np.array([0.2, -0.1, 0.3, 0.004, -0.003, 0.005])  # mm, rad
 

@@ -8,8 +8,15 @@ import lensforge as lf
 from lensforge.errors import ConfigError
 from lensforge.manufacturing.features import FeatureSpec, feature_boxes
 from lensforge.manufacturing.mesh import build_lens_mesh
-from lensforge.manufacturing.printer import (FORM2, check_layer, fitting_orientations, printability, small_features,
-                                             staircase, surface_staircase)
+from lensforge.manufacturing.printer import (
+    FORM2,
+    check_layer,
+    fitting_orientations,
+    printability,
+    small_features,
+    staircase,
+    surface_staircase,
+)
 from lensforge.manufacturing.slicer import find_prusa_slicer, parse_info, slicer_check
 
 HAS_SLICER = find_prusa_slicer() is not None

@@ -8,8 +8,16 @@ import pytest
 from lensforge.errors import PoseRangeError
 from lensforge.verification.handeye import invert_poses
 from lensforge.verification.robot import (
-    PAPER_Z, RobotNoise, flange_pose, forward_kinematics, inverse_kinematics, kr10_r1100_sixx,
-    lens_pose_matrix, paper_scene, random_lens_poses, simulate_calibration,
+    PAPER_Z,
+    RobotNoise,
+    flange_pose,
+    forward_kinematics,
+    inverse_kinematics,
+    kr10_r1100_sixx,
+    lens_pose_matrix,
+    paper_scene,
+    random_lens_poses,
+    simulate_calibration,
 )
 
 

@@ -1,8 +1,6 @@
 """Tolerance-robust design: robust cost, common random numbers, reproducibility, design file, CLI."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -143,9 +141,7 @@ def test_robust_spec_validation_and_compare(setup):
         compare_robust({"a": lens}, tol, bench, "A", n_samples=2, seed=9, exclude_seeds=(9,))
 
 
-def _run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "lensforge", *args], capture_output=True, text=True, timeout=300,
-                          cwd=cwd)
+from conftest import run_cli as _run
 
 
 def test_cli_robust_design(tmp_path):

@@ -12,8 +12,14 @@ import pytest
 import lensforge as lf
 from lensforge.errors import CalibrationError, ConfigError
 from lensforge.verification.robot import PAPER_Z, flange_pose
-from lensforge.verification.scenario import (ScenarioConfig, compare_pose_designs, format_comparison, plan_poses,
-                                             run_calibration, scenario_scene)
+from lensforge.verification.scenario import (
+    ScenarioConfig,
+    compare_pose_designs,
+    format_comparison,
+    plan_poses,
+    run_calibration,
+    scenario_scene,
+)
 
 FAST = ScenarioConfig(n_convergence=4, jac="forward")
 

@@ -111,7 +111,11 @@ def test_self_calibration_recovers_index_and_z_from_exact_data():
     from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
     from lensforge.verification.robot import flange_pose
     from lensforge.verification.self_calibration import perturbed_lens, self_calibrate
-    from lensforge.verification.study import _transform_error, make_context, resolve_lens
+    from lensforge.verification.study import (
+        _transform_error,
+        make_context,
+        resolve_lens,
+    )
 
     lens, bench = resolve_lens("extended_polynomial")
     ctx = make_context(lens, bench, None, StudyConfig(n_poses=8))

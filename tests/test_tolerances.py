@@ -7,8 +7,13 @@ import pytest
 
 import lensforge as lf
 from lensforge.errors import ConfigError
-from lensforge.manufacturing.tolerances import (DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances,
-                                                sample_as_built, scale_canonical)
+from lensforge.manufacturing.tolerances import (
+    DEFAULT_TOLERANCES_FILE,
+    Tolerances,
+    load_tolerances,
+    sample_as_built,
+    scale_canonical,
+)
 from lensforge.optics.lens import Lens
 from lensforge.optics.surfaces import CanonicalSurface
 
