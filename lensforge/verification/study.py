@@ -47,6 +47,7 @@ __all__ = ["StudyConfig", "StudyResult", "verify", "estimate_poses_batch", "Batc
            "StudyContext", "summarize_errors", "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
+CALIBRATIONS = ("two-stage", "joint")
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -62,7 +63,11 @@ class StudyConfig:
     min_poses: fewer usable poses than this fails the trial; target_mm /
     target_deg: calibration accuracy target (summary and budget); percentile:
     the percentile judged against the target; self_calibrate: also estimate the
-    dominant as-built parameters jointly with the poses (see self_calibration).
+    dominant as-built parameters jointly with the poses (see self_calibration);
+    calibration: "two-stage" (per-pose estimates, then AX = ZB) or "joint" (also run
+    the joint as-built calibration, ``calibration.joint``; both results are stored,
+    the summary shows the requested one); joint_prior: the joint calibration's lens
+    prior, "study" (the study's tolerances) or "default" (the default tolerance file).
     """
 
     n_poses: int = 24
@@ -75,8 +80,14 @@ class StudyConfig:
     target_deg: float = 0.01
     percentile: float = 95.0
     self_calibrate: bool = False
+    calibration: str = "two-stage"
+    joint_prior: str = "study"
 
     def __post_init__(self):
+        if self.calibration not in CALIBRATIONS:
+            raise ConfigError(f"calibration: {self.calibration!r} is not one of {', '.join(CALIBRATIONS)}")
+        if self.joint_prior not in ("study", "default"):
+            raise ConfigError(f"joint_prior: {self.joint_prior!r} is not 'study' or 'default'")
         if int(self.n_poses) != self.n_poses or self.n_poses < 3:
             raise ConfigError(f"n_poses: need an integer >= 3 (hand-eye needs 3 poses), got {self.n_poses!r}")
         if self.min_poses < 3 or self.min_poses > self.n_poses:
@@ -304,9 +315,22 @@ class StudyContext:
         """The nominal forward model, built once per context copy (i.e. once per worker)."""
         return ForwardModel(self.bench, self.lens)
 
-    def __getstate__(self):  # ship the inputs, not the cached model
+    @cached_property
+    def lens_parameterisation(self):
+        """theta of the joint calibration (built once per context copy)."""
+        from .joint_trial import study_parameterisation
+
+        tol = self.tolerances
+        if self.config.joint_prior == "default":
+            from ..manufacturing.tolerances import Tolerances
+
+            tol = Tolerances()
+        return study_parameterisation(self.bench, self.lens, tol, self.plan)
+
+    def __getstate__(self):  # ship the inputs, not the cached models
         d = dict(self.__dict__)
         d.pop("nominal_model", None)
+        d.pop("lens_parameterisation", None)
         return d
 
     def __setstate__(self, d):
@@ -417,6 +441,12 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
 
         rec["selfcal"] = self_calibrate_trial(ctx, nominal, z[used], x_est, x_true[used], A_cmd[used], X_true,
                                               he.Z, he.X, lens_ab)
+    if cfg.calibration == "joint":
+        from .joint_trial import joint_trial_record
+
+        rec["joint"] = joint_trial_record(ctx.bench, ctx.lens_parameterisation, z[lit], A_cmd[lit],
+                                          scene.T_SO_nominal, he.X, he.Z, scene.noise.cov, scene.Z, X_true,
+                                          _transform_error)
     return rec
 
 

@@ -1,0 +1,386 @@
+"""Joint maximum-likelihood calibration through an as-built lens, from the raw Zernike data.
+
+Unknowns: X = ^E T_O (grasp), Z = ^W T_S (sensor in the robot base), the as-built lens
+parameters theta (``lens_params.LensParameterisation``, prior N(0, I)) and the robot's
+pose error a_i of every pose (recorded flange pose A_i, actual A_i P(a_i), a_i ~
+N(0, Sigma_A): ``robot.RobotNoise``). Frames and the right-perturbation convention
+are those of ``handeye`` (DESIGN.md): the lens at pose i is
+
+    B_i = Z^-1 A_i P(a_i) X,   x_i = log(T_SO,nominal^-1 B_i)   (DESIGN's pose vector)
+
+and the sensor reports z_i = h(x_i; theta) + noise, noise ~ N(0, R) (the Zernike
+noise covariance of the bench, whitener L^-1). The negative log-likelihood (MAP with
+the priors) is
+
+    sum_i |L^-1 (h(x_i; theta) - z_i)|^2 + sum_i |L_A^-1 a_i|^2 + |theta|^2.
+
+Robot pose errors are explicit parameters, not marginalised: the likelihood stays
+exact (no linearisation of h in the robot error enters the cost), the per-pose blocks
+are eliminated in every Gauss-Newton step by a Schur complement (6x6 solves, cost
+linear in the number of poses), and the same elimination gives the covariance of
+(X, Z, theta) with the robot errors as nuisance. Marginalising them into the residual
+covariance instead (R + S_i G Sigma_A G^T S_i^T) would need an m x m factorisation per
+pose and iteration and is exact only to first order.
+
+Solver: Levenberg-Marquardt on the block-arrow normal equations, started from a
+two-stage solution (per-pose estimates + hand-eye) and theta = 0. Jacobians: dh/dx by
+central differences (one batched trace of 12 n poses), chained analytically to
+(X, Z, a_i); dh/dtheta by differences of the lens (one model per direction),
+refreshed when the step is large in theta and at the end. The fixed point is the exact
+minimiser whatever the Jacobian's accuracy.
+
+Uncertainty: the covariance of (xi_X, xi_Z, theta) is the inverse of the Schur
+complement of the joint information (priors included) at the estimate, i.e. the joint
+Cramer-Rao bound with theta and the robot errors as nuisances (Bayesian in theta).
+``crlb_Z_known_lens`` is the bound on Z if theta were known, for comparison. Model
+mismatch: the minimised cost is chi^2 with n m - 12 degrees of freedom (the prior
+terms add as many pseudo-observations as unknowns); ``p_value`` is its upper tail.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as _chi2
+
+from ..errors import CalibrationError
+from ..optics.pose import matrix_to_pose, pose_to_matrix, rotations
+from ..optics.shack_hartmann import ForwardModel
+from ..verification.handeye import adjoint, invert_poses
+from .lens_params import LensParameterisation
+
+__all__ = ["JointCalibrationResult", "joint_calibrate", "joint_information", "pose_chain", "simulate_joint_data"]
+
+_THETA_STEP = 0.05  # difference step in theta (prior-sigma units; h is near-linear at this size)
+
+
+def _right_jacobian_inv_so3(r) -> np.ndarray:
+    """J_r(r)^-1 (..., 3, 3): inverse right Jacobian of SO(3)."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r, axis=-1)[..., None, None]
+    K = np.zeros(r.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -r[..., 2], r[..., 1], -r[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    coef = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1 + np.cos(ths)) / (2 * ths * np.sin(ths)))
+    return np.eye(3) + 0.5 * K + coef * K @ K
+
+
+def pose_chain(A, X, Z, a, T_SO_nominal):
+    """Lens poses of the chain: B_i = Z^-1 A_i P(a_i) X (n, 4, 4) and their pose
+    vectors x_i = log(T_SO,nominal^-1 B_i) (n, 6)."""
+    B = invert_poses(Z) @ A @ pose_to_matrix(a) @ X
+    return B, matrix_to_pose(invert_poses(T_SO_nominal) @ B)
+
+
+def _chain_jacobians(B, x, X):
+    """dx_i / d(xi_X, xi_Z, a_i): (n, 6, 6) each (right perturbations; a_i small)."""
+    Minv = np.zeros(x.shape[:-1] + (6, 6))
+    Minv[..., :3, :3] = rotations(x[..., 3:])
+    Minv[..., 3:, 3:] = _right_jacobian_inv_so3(x[..., 3:])
+    dX = Minv
+    dZ = -Minv @ adjoint(invert_poses(B))
+    dA = Minv @ adjoint(invert_poses(X))
+    return dX, dZ, dA
+
+
+@dataclass(frozen=True, eq=False)
+class JointCalibrationResult:
+    """Outcome of :func:`joint_calibrate`.
+
+    X, Z: 4x4 (mm); theta: (k,) as-built parameters (prior-sigma units); robot_errors:
+    (n, 6) estimated flange pose errors a_i (mm, rad); cov: (12+k, 12+k) covariance of
+    (xi_X, xi_Z, theta) (right perturbations, mm and rad; joint CRLB at the estimate);
+    cov_X, cov_Z (6x6), cov_theta (k x k); crlb_Z_known_lens: 6x6 bound on Z with theta
+    known; theta_sigma: posterior 1-sigma of theta (prior is 1); identifiable: (k,)
+    theta_sigma < 0.5 (the data at least halve the prior); chi2, dof, p_value: the
+    model-mismatch test; mismatch: p_value < alpha; iterations, converged, n_traced
+    (poses traced); used: (n,) poses used (lit at the start; robot_errors has one row
+    per used pose); lens: the as-built lens of theta.
+    """
+
+    X: np.ndarray
+    Z: np.ndarray
+    theta: np.ndarray
+    robot_errors: np.ndarray
+    cov: np.ndarray
+    crlb_Z_known_lens: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    alpha: float
+    iterations: int
+    converged: bool
+    n_traced: int
+    parameterisation: LensParameterisation
+    used: np.ndarray
+
+    @property
+    def cov_X(self) -> np.ndarray:
+        return self.cov[:6, :6]
+
+    @property
+    def cov_Z(self) -> np.ndarray:
+        return self.cov[6:12, 6:12]
+
+    @property
+    def cov_theta(self) -> np.ndarray:
+        return self.cov[12:, 12:]
+
+    @property
+    def theta_sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov_theta))
+
+    @property
+    def identifiable(self) -> np.ndarray:
+        return self.theta_sigma < 0.5
+
+    @property
+    def mismatch(self) -> bool:
+        return bool(self.p_value < self.alpha)
+
+    @property
+    def lens(self):
+        return self.parameterisation.build(self.theta)
+
+    def summary(self) -> dict:
+        """JSON-ready numbers: Z 1-sigma (mm, deg), chi2 test, theta and its identifiability."""
+        dz = np.sqrt(np.diag(self.cov_Z))
+        dk = np.sqrt(np.diag(self.crlb_Z_known_lens))
+        return {"Z_sigma_mm": dz[:3].tolist(), "Z_sigma_deg": np.degrees(dz[3:]).tolist(),
+                "Z_sigma_known_lens_mm": dk[:3].tolist(), "Z_sigma_known_lens_deg": np.degrees(dk[3:]).tolist(),
+                "chi2": self.chi2, "dof": self.dof, "p_value": self.p_value, "mismatch": self.mismatch,
+                "theta": self.theta.tolist(), "theta_sigma": self.theta_sigma.tolist(),
+                "n_identifiable": int(self.identifiable.sum()), "iterations": self.iterations,
+                "converged": self.converged}
+
+
+class _Problem:
+    """Residuals and Jacobians of the joint problem (see the module doc)."""
+
+    def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool):
+        self.bench = bench
+        self.param = param
+        self.z = z
+        self.A = A
+        self.Tn = T_SO_nominal
+        self.n, self.m = z.shape
+        self.k = param.k
+        self.theta_prior = theta_prior
+        LA = np.linalg.cholesky(robot_cov)
+        self.WA = np.linalg.inv(LA)  # L_A^-1
+        self.robot_cov = robot_cov
+        self._model_key = None
+        self._model = None
+        self.Li = None
+        self.n_traced = 0
+
+    def model(self, theta) -> ForwardModel:
+        key = np.asarray(theta, float).tobytes()
+        if key != self._model_key:
+            self._model = ForwardModel(self.bench, self.param.build(theta), validate=False)
+            self._model_key = key
+            if self.Li is None:
+                self.Li = self._model.whitener
+        return self._model
+
+    def residuals(self, X, Z, theta, a):
+        """(r_z (n, m) whitened, lit (n,), B, x, uv) at the state."""
+        B, x = pose_chain(self.A, X, Z, a, self.Tn)
+        res = self.model(theta).evaluate(x, check_range=False)
+        self.n_traced += self.n
+        r = (res.z - self.z) @ self.Li.T
+        return r, res.valid, B, x, res.uv
+
+    def cost(self, r, a, theta) -> float:
+        c = float(np.sum(r * r)) + float(np.sum((a @ self.WA.T) ** 2))
+        return c + (float(theta @ theta) if self.theta_prior else 0.0)
+
+    def pose_jacobian(self, theta, x, uv):
+        """Whitened dh/dx (n, m, 6), central differences with the bench's steps."""
+        h = np.asarray(self.bench.fd_steps, dtype=float)
+        steps = np.concatenate([np.diag(h), -np.diag(h)])
+        poses = (x[:, None, :] + steps[None]).reshape(-1, 6)
+        res = self.model(theta).evaluate(poses, uv0=np.repeat(uv, 12, axis=0), check_range=False)
+        self.n_traced += poses.shape[0]
+        zz = res.z.reshape(self.n, 12, -1)
+        d = (zz[:, :6] - zz[:, 6:]) / (2 * h[None, :, None])  # (n, 6, m)
+        return np.einsum("ij,npj->nip", self.Li, d)
+
+    def theta_jacobian(self, theta, x, z0, central: bool):
+        """Whitened dh/dtheta (n, m, k) by differences of the lens."""
+        cols = []
+        for j in range(self.k):
+            e = np.zeros(self.k)
+            e[j] = _THETA_STEP
+            zp = ForwardModel(self.bench, self.param.build(theta + e), validate=False).evaluate(
+                x, check_range=False).z
+            if central:
+                zm = ForwardModel(self.bench, self.param.build(theta - e), validate=False).evaluate(
+                    x, check_range=False).z
+                cols.append((zp - zm) / (2 * _THETA_STEP))
+            else:
+                cols.append((zp - z0) / _THETA_STEP)
+            self.n_traced += self.n * (2 if central else 1)
+        if not cols:
+            return np.zeros((self.n, self.m, 0))
+        return np.einsum("ij,knj->nik", self.Li, np.stack(cols))
+
+    def blocks(self, S, Jt, B, x, X):
+        """Per-pose Jacobians: global (n, m, 12+k) and robot error (n, m, 6)."""
+        dX, dZ, dA = _chain_jacobians(B, x, X)
+        Jg = np.concatenate([S @ dX, S @ dZ, Jt], axis=2)
+        return Jg, S @ dA
+
+
+def _normal_equations(Jg, Ja, r, a, theta, WA, theta_prior: bool):
+    """Schur complement of the block-arrow normal equations over the robot errors.
+
+    Returns (Sg (G, G), bg (G,), Haa_inv (n, 6, 6), Hga (n, G, 6), ba (n, 6)) with
+    H = J^T J and b = J^T r (priors included)."""
+    G = Jg.shape[2]
+    k = G - 12
+    P = WA.T @ WA
+    Hgg = np.einsum("nmi,nmj->ij", Jg, Jg)
+    bg = np.einsum("nmi,nm->i", Jg, r)
+    if theta_prior and k:
+        Hgg[12:, 12:] += np.eye(k)
+        bg[12:] += theta
+    Haa = np.einsum("nmi,nmj->nij", Ja, Ja) + P
+    ba = np.einsum("nmi,nm->ni", Ja, r) + a @ P.T
+    Hga = np.einsum("nmi,nmj->nij", Jg, Ja)
+    return Hgg, bg, Haa, Hga, ba
+
+
+def _schur(Hgg, bg, Haa, Hga, ba, lam: float = 0.0):
+    Dg = np.diag(np.diag(Hgg)) * lam
+    Haa_l = Haa + lam * np.einsum("nii->ni", Haa)[..., None] * np.eye(6)
+    Hinv = np.linalg.inv(Haa_l)
+    HgaHi = Hga @ Hinv  # (n, G, 6)
+    S = Hgg + Dg - np.einsum("ngi,nhi->gh", HgaHi, Hga)
+    rhs = bg - np.einsum("ngi,ni->g", HgaHi, ba)
+    return S, rhs, Hinv
+
+
+def joint_information(S_w, B, x, X, Jt, robot_cov, theta_prior: bool = True) -> np.ndarray:
+    """Information of (xi_X, xi_Z, theta) with the robot errors eliminated, from the
+    whitened pose Jacobians S_w (n, m, 6) and theta Jacobians Jt (n, m, k) at lens poses
+    B (n,4,4) / pose vectors x (n, 6) and grasp X; its inverse is the joint CRLB."""
+    dX, dZ, dA = _chain_jacobians(B, x, X)
+    Jg = np.concatenate([S_w @ dX, S_w @ dZ, Jt], axis=2)
+    n = Jg.shape[0]
+    WA = np.linalg.inv(np.linalg.cholesky(robot_cov))
+    Hgg, bg, Haa, Hga, ba = _normal_equations(Jg, S_w @ dA, np.zeros(Jg.shape[:2]), np.zeros((n, 6)),
+                                              np.zeros(Jt.shape[2]), WA, theta_prior)
+    S, _, _ = _schur(Hgg, bg, Haa, Hga, ba)
+    return 0.5 * (S + S.T)
+
+
+def _inv(S):
+    try:
+        C = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        C = np.linalg.pinv(S, hermitian=True)
+    return 0.5 * (C + C.T)
+
+
+def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
+                    theta0=None, theta_prior: bool = True, max_iter: int = 40, tol: float = 1e-10,
+                    alpha: float = 1e-3) -> JointCalibrationResult:
+    """Joint ML/MAP estimate of X, Z, theta and the robot pose errors (module doc).
+
+    bench: the optics bench; param: theta parameterisation; z: (n, m) measured Zernikes
+    (um, the bench's modes); A: (n, 4, 4) recorded flange poses ^W T_E; T_SO_nominal:
+    4x4 nominal lens placement; X0, Z0: start (e.g. the two-stage hand-eye solution);
+    robot_cov: 6x6 flange pose noise covariance (right perturbation, (mm, rad)^2, e.g.
+    RobotNoise().cov); theta0: start for theta (default 0); theta_prior: include the
+    N(0, I) prior on theta (False: pure ML in theta, for noise-free checks); tol:
+    convergence when every step component is below tol of its 1-sigma; alpha: level of
+    the chi^2 mismatch test.
+    """
+    z = np.atleast_2d(np.asarray(z, dtype=float))
+    A = np.asarray(A, dtype=float)
+    n = z.shape[0]
+    if A.shape != (n, 4, 4):
+        raise CalibrationError(f"A: expected ({n}, 4, 4) flange poses (one per Zernike vector), got {A.shape}")
+    if n < 3:
+        raise CalibrationError(f"joint calibration: needs at least 3 poses, got {n}")
+    k = param.k
+    X, Z = np.array(X0, float), np.array(Z0, float)
+    theta = np.zeros(k) if theta0 is None else np.array(theta0, float)
+    Tn = np.asarray(T_SO_nominal, float)
+    # poses the start model cannot light are left out (the pupil test is not differentiable)
+    _, x0 = pose_chain(A, X, Z, np.zeros((n, 6)), Tn)
+    used = ForwardModel(bench, param.build(theta), validate=False).evaluate(x0, check_range=False).valid
+    if used.sum() < 3:
+        raise CalibrationError(f"joint calibration: only {int(used.sum())} of {n} poses light the pupil at the "
+                               "start; start closer (X0, Z0) or choose poses nearer nominal")
+    pb = _Problem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior)
+    n = int(used.sum())
+    a = np.zeros((n, 6))
+    r, lit, B, x, uv = pb.residuals(X, Z, theta, a)
+    cost = pb.cost(r, a, theta)
+    Jt = pb.theta_jacobian(theta, x, r @ np.linalg.inv(pb.Li).T + z, central=False)
+    theta_J = theta.copy()
+    lam = 1e-6
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        S = pb.pose_jacobian(theta, x, uv)
+        Jg, Ja = pb.blocks(S, Jt, B, x, X)
+        Hgg, bg, Haa, Hga, ba = _normal_equations(Jg, Ja, r, a, theta, pb.WA, theta_prior)
+        sd = np.sqrt(np.maximum(np.diag(_inv(_schur(Hgg, bg, Haa, Hga, ba)[0])), 1e-300))
+        accepted = False
+        while lam < 1e12:
+            Sg, rhs, Hinv = _schur(Hgg, bg, Haa, Hga, ba, lam)
+            dg = -np.linalg.solve(Sg, rhs)
+            da = -np.einsum("nij,nj->ni", Hinv, ba + np.einsum("ngi,g->ni", Hga, dg))
+            Xn, Zn = X @ pose_to_matrix(dg[:6]), Z @ pose_to_matrix(dg[6:12])
+            thn, an = theta + dg[12:], a + da
+            rn, litn, Bn, xn, uvn = pb.residuals(Xn, Zn, thn, an)
+            cn = pb.cost(rn, an, thn) if litn.all() else np.inf
+            if cn <= cost:
+                accepted = True
+                X, Z, theta, a, r, B, x, uv = Xn, Zn, thn, an, rn, Bn, xn, uvn
+                small_change = cost - cn <= tol * max(cost, 1e-300)
+                cost = cn
+                lam = max(lam / 10, 1e-12)
+                break
+            lam *= 10
+        if not accepted:
+            converged = True  # no descent left: a minimum (to the Jacobian's accuracy)
+            break
+        step = np.max(np.abs(dg) / sd)
+        if k and np.max(np.abs(theta - theta_J)) > 0.5:  # theta moved far: relinearise the lens
+            Jt = pb.theta_jacobian(theta, x, r @ np.linalg.inv(pb.Li).T + z, central=False)
+            theta_J = theta.copy()
+        if step < tol ** 0.5 * 1e-3 or (small_change and step < 1e-3):
+            converged = True
+            break
+    # covariance at the estimate, with fresh central Jacobians
+    S = pb.pose_jacobian(theta, x, uv)
+    Jt = pb.theta_jacobian(theta, x, None, central=True)
+    info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
+    cov = _inv(info)
+    crlb_known = _inv(info[:12, :12])[6:12, 6:12]  # theta known: the (X, Z) block alone
+    dof = n * pb.m - 12 - (0 if theta_prior else k)
+    return JointCalibrationResult(
+        X=X, Z=Z, theta=theta, robot_errors=a, cov=cov, crlb_Z_known_lens=crlb_known, chi2=cost, dof=dof,
+        p_value=float(_chi2.sf(cost, dof)), alpha=alpha, iterations=it, converged=converged,
+        n_traced=pb.n_traced, parameterisation=param, used=used)
+
+
+def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z, T_SO_nominal, rng=None):
+    """Zernike data (n, m) of the as-built lens of theta at the lens poses of the chain
+    Z^-1 A_true X (noise added when an rng is given); raises if a pose is unlit."""
+    _, x = pose_chain(A_true, X, Z, np.zeros((len(A_true), 6)), T_SO_nominal)
+    model = ForwardModel(bench, param.build(theta), validate=False)
+    res = model.evaluate(x, check_range=False)
+    if not res.valid.all():
+        raise CalibrationError(f"simulated data: poses {np.flatnonzero(~res.valid).tolist()} leave the pupil unlit")
+    if rng is None:
+        return res.z
+    sigma = bench.noise.slope_sigma_urad * 1e-6
+    return model.pupil.fit(res.slopes + rng.normal(0.0, sigma, res.slopes.shape))
