@@ -42,7 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2 as _chi2
+from scipy.special import chdtrc
 
 from ..errors import CalibrationError
 from ..optics.pose import matrix_to_pose, pose_to_matrix, rotations
@@ -186,13 +186,13 @@ class _Problem:
                 self.Li = self._model.whitener
         return self._model
 
-    def residuals(self, X, Z, theta, a):
-        """(r_z (n, m) whitened, lit (n,), B, x, uv) at the state."""
+    def residuals(self, X, Z, theta, a, uv0=None):
+        """(r_z (n, m) whitened, lit (n,), B, x, uv, z_model) at the state."""
         B, x = pose_chain(self.A, X, Z, a, self.Tn)
-        res = self.model(theta).evaluate(x, check_range=False)
+        res = self.model(theta).evaluate(x, uv0=uv0, check_range=False)
         self.n_traced += self.n
         r = (res.z - self.z) @ self.Li.T
-        return r, res.valid, B, x, res.uv
+        return r, res.valid, B, x, res.uv, res.z
 
     def cost(self, r, a, theta) -> float:
         c = float(np.sum(r * r)) + float(np.sum((a @ self.WA.T) ** 2))
@@ -209,21 +209,19 @@ class _Problem:
         d = (zz[:, :6] - zz[:, 6:]) / (2 * h[None, :, None])  # (n, 6, m)
         return np.einsum("ij,npj->nip", self.Li, d)
 
-    def theta_jacobian(self, theta, x, z0, central: bool):
-        """Whitened dh/dtheta (n, m, k) by differences of the lens."""
+    def theta_jacobian(self, theta, x, z0, uv):
+        """Whitened dh/dtheta (n, m, k): forward differences of the lens (h is nearly
+        linear in theta: 1 % change of the derivative per prior sigma), rays aimed from
+        the current solution uv."""
         cols = []
+        uv = np.asarray(uv)
         for j in range(self.k):
             e = np.zeros(self.k)
             e[j] = _THETA_STEP
             zp = ForwardModel(self.bench, self.param.build(theta + e), validate=False).evaluate(
-                x, check_range=False).z
-            if central:
-                zm = ForwardModel(self.bench, self.param.build(theta - e), validate=False).evaluate(
-                    x, check_range=False).z
-                cols.append((zp - zm) / (2 * _THETA_STEP))
-            else:
-                cols.append((zp - z0) / _THETA_STEP)
-            self.n_traced += self.n * (2 if central else 1)
+                x, uv0=uv, check_range=False).z
+            cols.append((zp - z0) / _THETA_STEP)
+            self.n_traced += self.n
         if not cols:
             return np.zeros((self.n, self.m, 0))
         return np.einsum("ij,knj->nik", self.Li, np.stack(cols))
@@ -320,15 +318,19 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     pb = _Problem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior)
     n = int(used.sum())
     a = np.zeros((n, 6))
-    r, lit, B, x, uv = pb.residuals(X, Z, theta, a)
+    r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a)
     cost = pb.cost(r, a, theta)
-    Jt = pb.theta_jacobian(theta, x, r @ np.linalg.inv(pb.Li).T + z, central=False)
-    theta_J = theta.copy()
+    fd = np.asarray(bench.fd_steps, dtype=float)
+    Jt = pb.theta_jacobian(theta, x, zm, uv)
+    theta_J, x_J = theta.copy(), x.copy()
     lam = 1e-6
     converged = False
     it = 0
+    x_S = None
     for it in range(1, max_iter + 1):
-        S = pb.pose_jacobian(theta, x, uv)
+        if x_S is None or np.max(np.abs(x - x_S) / fd) > 0.0:  # poses moved: fresh dh/dx
+            S = pb.pose_jacobian(theta, x, uv)
+            x_S = x.copy()
         Jg, Ja = pb.blocks(S, Jt, B, x, X)
         Hgg, bg, Haa, Hga, ba = _normal_equations(Jg, Ja, r, a, theta, pb.WA, theta_prior)
         sd = np.sqrt(np.maximum(np.diag(_inv(_schur(Hgg, bg, Haa, Hga, ba)[0])), 1e-300))
@@ -339,36 +341,43 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             da = -np.einsum("nij,nj->ni", Hinv, ba + np.einsum("ngi,g->ni", Hga, dg))
             Xn, Zn = X @ pose_to_matrix(dg[:6]), Z @ pose_to_matrix(dg[6:12])
             thn, an = theta + dg[12:], a + da
-            rn, litn, Bn, xn, uvn = pb.residuals(Xn, Zn, thn, an)
+            rn, litn, Bn, xn, uvn, zmn = pb.residuals(Xn, Zn, thn, an, uv0=uv)
             cn = pb.cost(rn, an, thn) if litn.all() else np.inf
             if cn <= cost:
                 accepted = True
-                X, Z, theta, a, r, B, x, uv = Xn, Zn, thn, an, rn, Bn, xn, uvn
+                X, Z, theta, a, r, B, x, uv, zm = Xn, Zn, thn, an, rn, Bn, xn, uvn, zmn
                 small_change = cost - cn <= tol * max(cost, 1e-300)
                 cost = cn
                 lam = max(lam / 10, 1e-12)
                 break
             lam *= 10
+        # dh/dtheta depends on theta and on the poses: refresh it when either moved
+        stale = k and (np.max(np.abs(theta - theta_J)) > 1e-3 or np.max(np.abs(x - x_J) / fd) > 10.0)
         if not accepted:
+            if stale:  # the frozen lens Jacobian limits the descent: relinearise and go on
+                Jt = pb.theta_jacobian(theta, x, zm, uv)
+                theta_J, x_J = theta.copy(), x.copy()
+                lam = 1e-6
+                continue
             converged = True  # no descent left: a minimum (to the Jacobian's accuracy)
             break
         step = np.max(np.abs(dg) / sd)
-        if k and np.max(np.abs(theta - theta_J)) > 0.5:  # theta moved far: relinearise the lens
-            Jt = pb.theta_jacobian(theta, x, r @ np.linalg.inv(pb.Li).T + z, central=False)
-            theta_J = theta.copy()
+        if stale:
+            Jt = pb.theta_jacobian(theta, x, zm, uv)
+            theta_J, x_J = theta.copy(), x.copy()
         if step < tol ** 0.5 * 1e-3 or (small_change and step < 1e-3):
             converged = True
             break
     # covariance at the estimate, with fresh central Jacobians
     S = pb.pose_jacobian(theta, x, uv)
-    Jt = pb.theta_jacobian(theta, x, None, central=True)
+    Jt = pb.theta_jacobian(theta, x, zm, uv)
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)
     crlb_known = _inv(info[:12, :12])[6:12, 6:12]  # theta known: the (X, Z) block alone
     dof = n * pb.m - 12 - (0 if theta_prior else k)
     return JointCalibrationResult(
         X=X, Z=Z, theta=theta, robot_errors=a, cov=cov, crlb_Z_known_lens=crlb_known, chi2=cost, dof=dof,
-        p_value=float(_chi2.sf(cost, dof)), alpha=alpha, iterations=it, converged=converged,
+        p_value=float(chdtrc(dof, cost)), alpha=alpha, iterations=it, converged=converged,
         n_traced=pb.n_traced, parameterisation=param, used=used)
 
 

@@ -116,7 +116,7 @@ class LensSpace:
             cs = getattr(lens, side).canonical()
             poly = cs.poly
             for j in self.form_modes:
-                a = v[f"{side}_Z{j}_mm"]
+                a = v.get(f"{side}_Z{j}_mm", 0.0)
                 if a:
                     poly = _poly_sum(poly, a * self._mode_polys[j])
             cs = CanonicalSurface(cs.c, cs.k, cs.alpha.copy(), poly, cs.ripple_amplitude, cs.ripple_period)

@@ -1,0 +1,163 @@
+"""Joint as-built calibration (calibration.joint, calibration.lens_params).
+
+Setup shared by the tests: the paper's polynomial lens (all six pose DOF observable
+per pose, so the joint problem is well conditioned) on the default bench, the
+paper scene, a 12-pose plan, a small tolerance model (form modes 4..8 only, so
+that theta is small and the tests fast).
+"""
+
+import numpy as np
+import pytest
+
+from lensforge.calibration.joint import joint_calibrate, pose_chain, simulate_joint_data
+from lensforge.calibration.lens_params import lens_space, parameterise
+from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.optics.bench import Bench
+from lensforge.optics.lens import paper_lens
+from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
+from lensforge.verification.robot import flange_pose, paper_scene
+from lensforge.verification.study import StudyConfig, calibration_plan
+
+TOL = Tolerances(form_modes=(4, 5, 6, 7, 8))
+
+
+@pytest.fixture(scope="module")
+def setup():
+    bench = Bench.default()
+    lens = paper_lens("polynomial")
+    scene = paper_scene(bench.placement.distance_mm)
+    plan = calibration_plan(StudyConfig(n_poses=12))
+    return bench, lens, scene, plan
+
+
+@pytest.fixture(scope="module")
+def param(setup):
+    bench, lens, _, plan = setup
+    return parameterise(bench, lens, TOL, plan, max_directions=3)
+
+
+def _err(T_true, T_est):
+    return matrix_to_pose(np.linalg.solve(T_true, T_est))
+
+
+def test_space_reproduces_nominal_and_mean(setup):
+    """p = 0 is the nominal lens (same Zernikes); the builder is additive in form."""
+    bench, lens, _, plan = setup
+    from lensforge.optics.shack_hartmann import ForwardModel
+
+    sp = lens_space(lens, TOL)
+    z0 = ForwardModel(bench, lens).evaluate(plan[:3]).z
+    z1 = ForwardModel(bench, sp.build(np.zeros(sp.size)), validate=False).evaluate(plan[:3]).z
+    assert np.max(np.abs(z1 - z0)) < 1e-9 * np.max(np.abs(z0))
+    assert sp.sigma[sp.index("thickness_mm")] == TOL.thickness_sigma_mm
+
+
+def test_noise_free_exactness(setup, param):
+    """theta, X and Z recovered to 1e-8 relative from noise-free data of the lens of theta."""
+    bench, lens, scene, plan = setup
+    rng = np.random.default_rng(1)
+    theta = rng.standard_normal(param.k)
+    X = scene.X @ pose_to_matrix([0.1, -0.2, 0.15, 0.003, -0.002, 0.004])
+    A = flange_pose(scene, plan, check_reach=False)
+    z = simulate_joint_data(bench, param, theta, A, X, scene.Z, scene.T_SO_nominal)
+    X0 = X @ pose_to_matrix([0.05, 0.05, -0.05, 1e-3, 1e-3, -1e-3])
+    Z0 = scene.Z @ pose_to_matrix([-0.05, 0.05, 0.05, -1e-3, 1e-3, 1e-3])
+    res = joint_calibrate(bench, param, z, A, scene.T_SO_nominal, X0, Z0, scene.noise.cov, theta_prior=False)
+    assert res.converged and res.used.all()
+    assert np.max(np.abs(res.theta - theta)) <= 1e-8 * np.max(np.abs(theta))
+    for T_true, T_est in ((X, res.X), (scene.Z, res.Z)):
+        e = _err(T_true, T_est)
+        assert np.linalg.norm(e[:3]) <= 1e-8 * np.linalg.norm(T_true[:3, 3])
+        assert np.linalg.norm(e[3:]) <= 1e-8
+    assert res.chi2 < 1e-10 * res.dof
+
+
+def _mc_trial(bench, param, scene, A_cmd, rng):
+    """One Monte Carlo draw: theta ~ prior, robot errors ~ RobotNoise, slope noise."""
+    theta = rng.standard_normal(param.k)
+    A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(A_cmd)))
+    z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
+    X0 = scene.X @ pose_to_matrix(rng.standard_normal(6) * ([0.05] * 3 + [1e-3] * 3))
+    Z0 = scene.Z @ pose_to_matrix(rng.standard_normal(6) * ([0.05] * 3 + [1e-3] * 3))
+    res = joint_calibrate(bench, param, z, A_cmd, scene.T_SO_nominal, X0, Z0, scene.noise.cov)
+    e = np.r_[_err(scene.X, res.X), _err(scene.Z, res.Z), res.theta - theta]
+    return e, res
+
+
+def _mc(setup, param, n, seed):
+    bench, _, scene, plan = setup
+    A_cmd = flange_pose(scene, plan, check_reach=False)
+    rng = np.random.default_rng(seed)
+    errs, covs, chi = [], [], []
+    for _ in range(n):
+        e, res = _mc_trial(bench, param, scene, A_cmd, rng)
+        errs.append(e)
+        covs.append(res.cov)
+        chi.append(res.chi2 / res.dof)
+    return np.array(errs), np.array(covs), np.array(chi)
+
+
+def _check_crlb(errs, covs, rel):
+    """Mean NEES of (X, Z, theta) per dimension and the Z block's trace ratio within rel."""
+    n, d = errs.shape
+    C = covs.mean(axis=0)
+    nees = np.einsum("ni,nij,nj->n", errs, np.linalg.inv(covs), errs) / d
+    assert abs(nees.mean() - 1) < rel, nees.mean()
+    emp = errs[:, 6:12].T @ errs[:, 6:12] / n
+    for blk in (slice(0, 3), slice(3, 6)):
+        ratio = np.trace(emp[blk, blk]) / np.trace(C[6:12, 6:12][blk, blk])
+        assert abs(ratio - 1) < 2.5 * rel, ratio
+
+
+def test_monte_carlo_at_joint_crlb_small(setup, param):
+    """A small Monte Carlo (CI): NEES and Z scatter agree with the joint CRLB within
+    3 sigma of a 30-draw estimate (NEES mean: sd sqrt(2 / (30 d)))."""
+    errs, covs, chi = _mc(setup, param, 30, 7)
+    d = errs.shape[1]
+    _check_crlb(errs, covs, 3 * np.sqrt(2 / (30 * d)) + 0.02)
+    assert abs(chi.mean() - 1) < 0.1
+
+
+@pytest.mark.slow
+def test_monte_carlo_at_joint_crlb(setup, param):
+    """The issue's Monte Carlo: empirical error covariance at the joint CRLB within 10 %."""
+    errs, covs, _ = _mc(setup, param, 200, 11)
+    _check_crlb(errs, covs, 0.10)
+
+
+def test_mismatch_flagged(setup, param):
+    """A lens with a form error outside theta's span (spherical aberration Z11, not in
+    the tolerance model's modes) is flagged by the chi^2 test; in-span data are not."""
+    bench, lens, scene, plan = setup
+    from lensforge.calibration.lens_params import LensSpace
+
+    rng = np.random.default_rng(5)
+    A = flange_pose(scene, plan, check_reach=False)
+    theta = rng.standard_normal(param.k)
+    sp = param.space
+    wide = LensSpace(lens=sp.lens, names=sp.names + ("front_Z11_mm",), mean=np.r_[sp.mean, 0.0],
+                     sigma=np.r_[sp.sigma, 1e-3], form_modes=sp.form_modes + (11,), rolloff_power=sp.rolloff_power)
+    p = np.r_[param.elementary(theta), 2e-3]  # 2 um of spherical on the front surface
+
+    class Outside:
+        k = param.k
+
+        @staticmethod
+        def build(_theta):
+            return wide.build(p)
+
+    z_bad = simulate_joint_data(bench, Outside, theta, A, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
+    z_ok = simulate_joint_data(bench, param, theta, A, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
+    kw = dict(T_SO_nominal=scene.T_SO_nominal, X0=scene.X, Z0=scene.Z, robot_cov=scene.noise.cov)
+    bad = joint_calibrate(bench, param, z_bad, A, **kw)
+    ok = joint_calibrate(bench, param, z_ok, A, **kw)
+    assert bad.mismatch and bad.p_value < 1e-6
+    assert not ok.mismatch
+
+
+def test_pose_chain_matches_scene(setup):
+    """B = Z^-1 A X of the commanded flange poses is the planned lens pose."""
+    _, _, scene, plan = setup
+    A = flange_pose(scene, plan, check_reach=False)
+    _, x = pose_chain(A, scene.X, scene.Z, np.zeros((len(A), 6)), scene.T_SO_nominal)
+    assert np.max(np.abs(x - plan)) < 1e-9
