@@ -1,0 +1,84 @@
+"""Joint as-built calibration: time of one calibration and of an as-built study with it.
+
+1. One joint calibration (calibration.joint.joint_calibrate) of n poses: the study's
+   plan, an as-built lens drawn from theta's prior, robot and sensor noise, started
+   0.3 mm / 0.5 deg off (the two-stage solution's typical error); median wall time over
+   --repeats draws, single core (BLAS pinned to one thread by the caller).
+2. --study N: an as-built study of N lenses with --calibration joint on --workers
+   processes (default tolerances), wall time and the extrapolation to 1000 lenses.
+
+Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_joint.py [DESIGN] [--poses 24]
+     [--repeats 10] [--study 40 --workers 2]
+DESIGN: a design JSON (e.g. exports/zernike.json from `make demo`) or a paper lens name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from lensforge.calibration.joint import joint_calibrate, simulate_joint_data
+from lensforge.calibration.lens_params import parameterise
+from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.optics.pose import pose_to_matrix
+from lensforge.verification.study import StudyConfig, calibration_plan, resolve_lens, verify
+
+
+def one_calibration(design: str, n_poses: int, repeats: int) -> None:
+    from lensforge.calibration.robot import flange_pose, paper_scene
+
+    lens, bench = resolve_lens(design)
+    scene = paper_scene(bench.placement.distance_mm)
+    plan = calibration_plan(StudyConfig(n_poses=n_poses))
+    t0 = time.perf_counter()
+    param = parameterise(bench, lens, Tolerances(), plan)
+    t_param = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    A_cmd = flange_pose(scene, plan, check_reach=False)
+    times, iters = [], []
+    off = np.r_[[0.3] * 3, [math.radians(0.5)] * 3]
+    for _ in range(repeats):
+        theta = rng.standard_normal(param.k)
+        A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, n_poses))
+        try:
+            z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
+        except Exception:  # a draw that leaves a pose unlit: skip it
+            continue
+        X0 = scene.X @ pose_to_matrix(rng.standard_normal(6) * off)
+        Z0 = scene.Z @ pose_to_matrix(rng.standard_normal(6) * off)
+        t0 = time.perf_counter()
+        res = joint_calibrate(bench, param, z, A_cmd, scene.T_SO_nominal, X0, Z0, scene.noise.cov)
+        times.append(time.perf_counter() - t0)
+        iters.append(res.iterations)
+    print(f"theta: {param.k} directions, chosen in {t_param:.2f} s (once per study)")
+    print(f"one joint calibration, {n_poses} poses: median {np.median(times):.2f} s, max {np.max(times):.2f} s "
+          f"over {len(times)} draws; median {np.median(iters):.0f} LM iterations")
+
+
+def study(design: str, n: int, workers: int, n_poses: int) -> None:
+    cfg = StudyConfig(n_poses=n_poses, calibration="joint")
+    t0 = time.perf_counter()
+    res = verify(design, Tolerances(), n_lenses=n, seed=0, config=cfg, workers=workers, progress=False)
+    wall = time.perf_counter() - t0
+    print(f"study, {n} lenses, joint, {workers} workers: {wall:.0f} s -> 1000 lenses ~ {wall * 1000 / n / 60:.1f} min "
+          f"(Z p95 {res.summary['translation_mm']['p95']} mm)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("design", nargs="?", default="polynomial")
+    ap.add_argument("--poses", type=int, default=24)
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--study", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    a = ap.parse_args()
+    one_calibration(a.design, a.poses, a.repeats)
+    if a.study:
+        study(a.design, a.study, a.workers, a.poses)
+
+
+if __name__ == "__main__":
+    main()
