@@ -82,7 +82,7 @@ def register(app: typer.Typer) -> None:
     ):
         """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
         from ..cli import emit_json, info
-        from ..verification.handeye import solve_handeye
+        from ..calibration.handeye import solve_handeye
         import warnings
 
         kw = load_poses(poses)
