@@ -205,10 +205,6 @@ def _project_so3(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
-def _vec(M):  # column-major vec
-    return M.T.reshape(-1)
-
-
 def _unvec(v):
     return v.reshape(3, 3).T
 
