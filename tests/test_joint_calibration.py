@@ -15,7 +15,7 @@ from lensforge.manufacturing.tolerances import Tolerances
 from lensforge.optics.bench import Bench
 from lensforge.optics.lens import paper_lens
 from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
-from lensforge.verification.robot import flange_pose, paper_scene
+from lensforge.calibration.robot import flange_pose, paper_scene
 from lensforge.verification.study import StudyConfig, calibration_plan
 
 TOL = Tolerances(form_modes=(4, 5, 6, 7, 8))

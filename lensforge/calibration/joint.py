@@ -45,12 +45,12 @@ import numpy as np
 from scipy.special import chdtrc
 
 from ..errors import CalibrationError
-from ..optics.pose import matrix_to_pose, pose_to_matrix, rotations
+from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, rotations
 from ..optics.shack_hartmann import ForwardModel
-from ..verification.handeye import adjoint, invert_poses
 from .lens_params import LensParameterisation
 
-__all__ = ["JointCalibrationResult", "joint_calibrate", "joint_information", "pose_chain", "simulate_joint_data"]
+__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain", "chain_jacobians",
+           "simulate_joint_data"]
 
 _THETA_STEP = 0.05  # difference step in theta (prior-sigma units; h is near-linear at this size)
 
@@ -75,7 +75,7 @@ def pose_chain(A, X, Z, a, T_SO_nominal):
     return B, matrix_to_pose(invert_poses(T_SO_nominal) @ B)
 
 
-def _chain_jacobians(B, x, X):
+def chain_jacobians(B, x, X):
     """dx_i / d(xi_X, xi_Z, a_i): (n, 6, 6) each (right perturbations; a_i small)."""
     Minv = np.zeros(x.shape[:-1] + (6, 6))
     Minv[..., :3, :3] = rotations(x[..., 3:])
@@ -157,7 +157,7 @@ class JointCalibrationResult:
                 "converged": self.converged}
 
 
-class _Problem:
+class JointProblem:
     """Residuals and Jacobians of the joint problem (see the module doc)."""
 
     def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool):
@@ -228,7 +228,7 @@ class _Problem:
 
     def blocks(self, S, Jt, B, x, X):
         """Per-pose Jacobians: global (n, m, 12+k) and robot error (n, m, 6)."""
-        dX, dZ, dA = _chain_jacobians(B, x, X)
+        dX, dZ, dA = chain_jacobians(B, x, X)
         Jg = np.concatenate([S @ dX, S @ dZ, Jt], axis=2)
         return Jg, S @ dA
 
@@ -266,7 +266,7 @@ def joint_information(S_w, B, x, X, Jt, robot_cov, theta_prior: bool = True) -> 
     """Information of (xi_X, xi_Z, theta) with the robot errors eliminated, from the
     whitened pose Jacobians S_w (n, m, 6) and theta Jacobians Jt (n, m, k) at lens poses
     B (n,4,4) / pose vectors x (n, 6) and grasp X; its inverse is the joint CRLB."""
-    dX, dZ, dA = _chain_jacobians(B, x, X)
+    dX, dZ, dA = chain_jacobians(B, x, X)
     Jg = np.concatenate([S_w @ dX, S_w @ dZ, Jt], axis=2)
     n = Jg.shape[0]
     WA = np.linalg.inv(np.linalg.cholesky(robot_cov))
@@ -315,7 +315,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     if used.sum() < 3:
         raise CalibrationError(f"joint calibration: only {int(used.sum())} of {n} poses light the pupil at the "
                                "start; start closer (X0, Z0) or choose poses nearer nominal")
-    pb = _Problem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior)
+    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior)
     n = int(used.sum())
     a = np.zeros((n, 6))
     r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a)

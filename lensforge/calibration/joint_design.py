@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..optics.shack_hartmann import ForwardModel
-from .joint import _chain_jacobians
+from .joint import chain_jacobians
 from .lens_params import LensParameterisation
 
 __all__ = ["JointDesign", "candidate_information", "predicted_joint_uncertainty", "design_joint_poses",
@@ -46,14 +46,14 @@ def box_candidates(rng: np.random.Generator, span, n_random: int = 400) -> np.nd
 def candidate_information(bench, param: LensParameterisation, scene, x, robot_cov=None):
     """(I (m, G, G) information per candidate pose x (m, 6), lit (m,)); G = 12 + k.
     Unlit candidates get zero information."""
-    from .joint import _Problem
+    from .joint import JointProblem
 
     x = np.atleast_2d(np.asarray(x, dtype=float))
     robot_cov = scene.noise.cov if robot_cov is None else np.asarray(robot_cov, float)
     m = x.shape[0]
     B = scene.T_SO_nominal @ _pose_matrices(x)
     A = scene.Z @ B @ np.linalg.inv(scene.X)
-    pb = _Problem(bench, param, np.zeros((m, 1)), A, scene.T_SO_nominal, robot_cov, True)
+    pb = JointProblem(bench, param, np.zeros((m, 1)), A, scene.T_SO_nominal, robot_cov, True)
     theta = np.zeros(param.k)
     model = pb.model(theta)
     res = model.evaluate(x, check_range=False)
@@ -61,7 +61,7 @@ def candidate_information(bench, param: LensParameterisation, scene, x, robot_co
     pb.m = res.z.shape[1]
     S = pb.pose_jacobian(theta, x, res.uv)
     Jt = pb.theta_jacobian(theta, x, res.z, res.uv)
-    dX, dZ, dA = _chain_jacobians(B, x, scene.X)
+    dX, dZ, dA = chain_jacobians(B, x, scene.X)
     Jg = np.concatenate([S @ dX, S @ dZ, Jt], axis=2)
     Ja = S @ dA
     P = np.linalg.inv(robot_cov)
@@ -155,7 +155,7 @@ def _select(Ic, k, n, max_passes):
 
 def _reachable(scene, x) -> bool:
     from ..errors import PoseRangeError
-    from ..verification.robot import flange_pose
+    from .robot import flange_pose
 
     try:
         flange_pose(scene, x[None], check_reach=True)
@@ -168,7 +168,7 @@ def design_joint_poses(bench, param: LensParameterisation, scene, n: int, candid
                        robot_cov=None, check_reach: bool = True, max_passes: int = 10) -> JointDesign:
     """Ds-optimal (for Z) choice of n lens poses among candidates (m, 6) for the joint
     calibration; compare: a plan (n', 6) whose predicted uncertainty is reported beside."""
-    from ..verification.robot import flange_pose
+    from .robot import flange_pose
 
     if n < 3:
         raise ConfigError(f"n: the joint calibration needs at least 3 poses, got {n}")

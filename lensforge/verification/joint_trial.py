@@ -18,7 +18,7 @@ import numpy as np
 from ..calibration.joint import joint_calibrate
 from ..calibration.lens_params import LensParameterisation, parameterise
 from ..errors import LensforgeError
-from ..optics.pose import matrix_to_pose
+from ..optics.pose import matrix_to_pose, transform_error
 
 __all__ = ["study_parameterisation", "joint_trial_record", "nees"]
 
@@ -39,7 +39,7 @@ def nees(T_true, T_est, cov) -> float:
 
 
 def joint_trial_record(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, Z_true,
-                       X_true, transform_error) -> dict:
+                       X_true) -> dict:
     """Run the joint calibration on one trial's data; a record like the trial's (ok,
     rot_err_deg, trans_err_mm, x_*), plus nees_Z (6 dof), chi2, dof, p_value,
     mismatch, theta, n_identifiable, iterations, converged, Z 1-sigma."""
