@@ -161,3 +161,26 @@ def test_pose_chain_matches_scene(setup):
     A = flange_pose(scene, plan, check_reach=False)
     _, x = pose_chain(A, scene.X, scene.Z, np.zeros((len(A), 6)), scene.T_SO_nominal)
     assert np.max(np.abs(x - plan)) < 1e-9
+
+
+def test_study_stores_both_calibrations(tmp_path):
+    """verify(calibration="joint") shows the joint errors in ``summary`` and keeps the
+    two-stage ones; the CLI rejects an unknown calibration in one line."""
+    import subprocess
+    import sys
+
+    from lensforge.verification.study import verify
+
+    cfg = StudyConfig(n_poses=8, calibration="joint")
+    res = verify("zernike", Tolerances.zero(), 2, 0, config=cfg, workers=0, progress=False)
+    d = res.to_dict()
+    assert d["summary"]["calibration"] == "joint" and d["joint_summary"] is d["summary"]
+    assert d["two_stage_summary"]["n_lenses"] == 2
+    rec = res.records[0]
+    assert rec["ok"] and rec["joint"]["ok"]
+    assert res.trans_err_mm[0] == rec["joint"]["trans_err_mm"]
+    assert d["summary"]["joint"]["nees_dof"] > 0
+    exe = [sys.executable, "-c", "from lensforge.cli import main; main()"]
+    r = subprocess.run(exe + ["study", "zernike", "--lenses", "1", "--calibration", "both", "-o", str(tmp_path)],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "calibration" in r.stderr

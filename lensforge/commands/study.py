@@ -31,6 +31,14 @@ def _write_json(path: Path, obj) -> None:
     write_atomic(path, dumps_json(obj))
 
 
+def _print_errors(s: dict) -> None:
+    q = f"p{s['percentile']:g}"
+    for key, unit in (("rotation_deg", "deg"), ("translation_mm", "mm")):
+        v = s[key]
+        info(f"  Z {key.split('_')[0]}: median {_fmt(v['median'], unit)}, {q} {_fmt(v[q], unit)}, "
+             f"max {_fmt(v['max'], unit)}")
+
+
 def study_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
     tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
@@ -43,6 +51,8 @@ def study_cmd(
     resume: bool = typer.Option(False, "--resume", help="continue the study stored in the output folder"),
     self_calibrate: bool = typer.Option(False, "--self-calibrate", help="also estimate as-built thickness, "
                                                                         "index and form with the poses"),
+    calibration: str = typer.Option("joint", "--calibration", help="two-stage (per-pose estimates, then AX = ZB) "
+                                    "or joint (X, Z and the as-built lens from the raw Zernikes; both are stored)"),
     bench: Path = typer.Option(None, "--bench", help="bench TOML (default: the design's, else built-in)"),
     target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
     target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
@@ -52,7 +62,8 @@ def study_cmd(
 ):
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
     tol = _tolerances(tolerances)
-    cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg)
+    cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg,
+                      calibration=calibration)
     b = load_bench(bench) if bench else None
     out.mkdir(parents=True, exist_ok=True)
     res = verify(design, tol, lenses, seed, b, config=cfg, workers=workers, scheduler=scheduler,
@@ -64,13 +75,16 @@ def study_cmd(
     plot_error_histograms(res.rot_err_deg, res.trans_err_mm, out / "errors.png", target_deg, target_mm,
                           title=f"{design}: Z error over {res.n_lenses} as-built lenses")
     s = res.summary
-    info(f"{s['n_ok']} of {s['n_lenses']} calibrations succeeded ({res.stats.n_resumed} resumed, "
+    info(f"{s['n_ok']} of {s['n_lenses']} {calibration} calibrations succeeded ({res.stats.n_resumed} resumed, "
          f"{res.stats.wall_s:.1f} s, {res.stats.mode})")
-    for key, unit in (("rotation_deg", "deg"), ("translation_mm", "mm")):
-        v = s[key]
-        q = f"p{s['percentile']:g}"
-        info(f"  Z {key.split('_')[0]}: median {_fmt(v['median'], unit)}, {q} {_fmt(v[q], unit)}, "
-             f"max {_fmt(v['max'], unit)}")
+    _print_errors(s)
+    if calibration == "joint":
+        j = s["joint"]
+        if j["nees_dof"] is not None:
+            info(f"  joint: NEES/dof of Z {j['nees_dof']:.2f}, chi2 mismatch flagged in {j['mismatch_rate']:.0%} "
+                 f"of lenses, median {j['n_identifiable_median']:g} identifiable lens directions")
+        info("  two-stage on the same data:")
+        _print_errors(d["two_stage_summary"])
     info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
          f"{'met' if s['meets_target'] else 'NOT met'}")
     if s["failures"]:
@@ -93,20 +107,22 @@ def budget_cmd(
     scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
     bench: Path = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
+    calibration: str = typer.Option("joint", "--calibration", help="two-stage or joint (see `lensforge study`)"),
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
 ):
     """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
     tol = _tolerances(tolerances)
-    cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg)
+    cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = load_bench(bench) if bench else None
     out.mkdir(parents=True, exist_ok=True)
     with dask_client(workers, scheduler) as cl:
         kw = dict(config=cfg, client=cl, workers=0)
         bud = tolerance_budget(design, tol, target_mm=target_mm, target_deg=target_deg, n_lenses=lenses,
                                seed=seed, bench=b, relative_to_noise=relative, **kw)
-        cfg2 = StudyConfig(n_poses=poses, target_mm=bud.target_mm, target_deg=bud.target_deg)
+        cfg2 = StudyConfig(n_poses=poses, target_mm=bud.target_mm, target_deg=bud.target_deg,
+                           calibration=calibration)
         sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0)
-    d = {"schema_version": 1, "design": str(design), **bud.to_dict(),
+    d = {"schema_version": 1, "design": str(design), "calibration": calibration, **bud.to_dict(),
          "sensitivity": [r.to_dict() for r in sens], "tolerances": tol.to_dict()}
     _write_json(out / "budget.json", d)
     plot_sensitivity([r.to_dict() for r in sens], out / "sensitivity.png",
@@ -118,7 +134,7 @@ def budget_cmd(
         rows.append(rd)
     plot_budget(rows, out / "budget.png", title=f"{design}: tolerance budget "
                 f"({bud.target_mm:.3g} mm, {bud.target_deg:.3g} deg at p{bud.percentile:g})")
-    info(f"budget for {design}: target {bud.target_mm:.3g} mm and {bud.target_deg:.3g} deg at "
+    info(f"budget for {design} ({calibration} calibration): target {bud.target_mm:.3g} mm and {bud.target_deg:.3g} deg at "
          f"p{bud.percentile:g}; noise-only ratio {bud.noise_ratio if bud.noise_ratio is None else round(bud.noise_ratio, 3)}")
     info(f"  {'component':<10} {'given':>12} {'max scale':>10} {'max value':>12}  unit / status")
     for r in bud.rows:

@@ -44,7 +44,8 @@ from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector
 from ..optics.shack_hartmann import ForwardModel
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "estimate_poses_batch", "BatchPoseEstimate", "run_trial",
-           "StudyContext", "summarize_errors", "SCHEMA_VERSION"]
+           "StudyContext", "summarize_errors", "SCHEMA_VERSION", "CALIBRATIONS", "calibration_records",
+           "joint_statistics"]
 
 SCHEMA_VERSION = 1
 CALIBRATIONS = ("two-stage", "joint")
@@ -365,7 +366,9 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     x_rot_err_deg / x_trans_err_mm (grasp X error), bias (6: mean estimate - truth,
     mm and rad), bias_std (6), n_used, n_pupil_lost, n_not_converged, chi2_dof
     (pose fits, mean), handeye_chi2_dof, and, with self-calibration, the same
-    errors after it under "selfcal".
+    errors after it under "selfcal"; with calibration "joint", the joint calibration's
+    record (``joint_trial.joint_trial_record``) under "joint", run on the same data
+    from the two-stage solution.
     """
     from ..calibration.handeye import solve_handeye
     from ..calibration.robot import flange_pose, lens_pose_matrix
@@ -489,9 +492,12 @@ def summarize_errors(records: list[dict], target_mm: float, target_deg: float, p
 class StudyResult:
     """Outcome of :func:`verify`.
 
-    records: per-trial dicts (index order); rot_err_deg / trans_err_mm: (n,) Z error
-    (nan for failed trials); bias: (n, 6) mean pose-estimation bias per trial (mm,
-    rad; nan when failed); ok: (n,); summary: see ``summarize_errors``; config:
+    records: per-trial dicts (index order; the joint calibration's result under
+    "joint"); rot_err_deg / trans_err_mm: (n,) Z error of the requested calibration
+    (config.calibration; nan for failed trials); bias: (n, 6) mean pose-estimation
+    bias per trial (mm, rad; nan when failed); ok: (n,); summary: see
+    ``summarize_errors``, plus "calibration" and, for joint, "joint"
+    (``joint_statistics``); config:
     the hashed study configuration; config_hash; store: the store path or None;
     stats: runner.RunStats.
     """
@@ -533,7 +539,17 @@ class StudyResult:
         sc = self.selfcal_summary()
         if sc is not None:
             d["selfcal_summary"] = sc
+        if self.summary.get("calibration") == "joint":
+            d["two_stage_summary"] = self.calibration_summary("two-stage")
+            d["joint_summary"] = self.summary
         return d
+
+    def calibration_summary(self, calibration: str) -> dict:
+        """Summary (as ``summary``) of the given calibration's errors ("two-stage" always
+        exists; "joint" when the study ran it)."""
+        t = self.summary["target"]
+        return summarize_errors(calibration_records(self.records, calibration), t["translation_mm"],
+                                t["rotation_deg"], self.summary["percentile"])
 
 
 def resolve_lens(design_or_lens, bench: Bench | None = None) -> tuple[Lens, Bench]:
@@ -617,14 +633,40 @@ def context_config(ctx: StudyContext, seed: int) -> dict:
     }
 
 
+def calibration_records(records, calibration: str) -> list[dict]:
+    """Trial records of one calibration: the two-stage record itself, or its "joint"
+    sub-record (a trial whose simulation failed before calibrating fails for both)."""
+    if calibration == "two-stage":
+        return list(records)
+    return [r["joint"] if r["ok"] and "joint" in r else (r if not r["ok"] else
+            {"ok": False, "failure": "joint calibration not run", "rot_err_deg": None, "trans_err_mm": None})
+            for r in records]
+
+
+def joint_statistics(records) -> dict:
+    """Consistency of the joint calibration over trials: mean NEES/dof of Z (6 dof),
+    chi^2 mismatch rate, median iterations and identifiable theta directions."""
+    ok = [r for r in records if r.get("ok") and "nees_Z" in r]
+    if not ok:
+        return {"nees_dof": None, "mismatch_rate": None, "iterations_median": None, "n_identifiable_median": None}
+    return {"nees_dof": float(np.mean([r["nees_Z"] for r in ok]) / 6.0),
+            "mismatch_rate": float(np.mean([r["mismatch"] for r in ok])),
+            "iterations_median": float(np.median([r["iterations"] for r in ok])),
+            "n_identifiable_median": float(np.median([r["n_identifiable"] for r in ok]))}
+
+
 def result_from_records(records: dict[int, dict], config: dict, chash: str, store, stats,
                         study_config: StudyConfig) -> StudyResult:
     recs = tuple(records[i] for i in sorted(records))
-    ok = np.array([r["ok"] for r in recs], bool)
-    rot = np.array([r["rot_err_deg"] if r["ok"] else np.nan for r in recs], float)
-    tr = np.array([r["trans_err_mm"] if r["ok"] else np.nan for r in recs], float)
+    shown = calibration_records(recs, study_config.calibration)
+    ok = np.array([r["ok"] for r in shown], bool)
+    rot = np.array([r["rot_err_deg"] if r["ok"] else np.nan for r in shown], float)
+    tr = np.array([r["trans_err_mm"] if r["ok"] else np.nan for r in shown], float)
     bias = np.array([r["bias"] if r["ok"] else [np.nan] * 6 for r in recs], float).reshape(-1, 6)
-    summ = summarize_errors(list(recs), study_config.target_mm, study_config.target_deg, study_config.percentile)
+    summ = summarize_errors(shown, study_config.target_mm, study_config.target_deg, study_config.percentile)
+    summ["calibration"] = study_config.calibration
+    if study_config.calibration == "joint":
+        summ["joint"] = joint_statistics(shown)
     return StudyResult(records=recs, rot_err_deg=rot, trans_err_mm=tr, bias=bias, ok=ok, summary=summ,
                        config=config, config_hash=chash, store=Path(store) if store else None, stats=stats)
 
