@@ -49,7 +49,7 @@ from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix,
 from ..optics.shack_hartmann import ForwardModel
 from .lens_params import LensParameterisation
 
-__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain", "chain_jacobians",
+__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_calibrate_from", "joint_information", "pose_chain", "chain_jacobians",
            "simulate_joint_data"]
 
 _THETA_STEP = 0.05  # difference step in theta (prior-sigma units; h is near-linear at this size)
@@ -379,6 +379,28 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         X=X, Z=Z, theta=theta, robot_errors=a, cov=cov, crlb_Z_known_lens=crlb_known, chi2=cost, dof=dof,
         p_value=float(chdtrc(dof, cost)), alpha=alpha, iterations=it, converged=converged,
         n_traced=pb.n_traced, parameterisation=param, used=used)
+
+
+def joint_calibrate_from(bench, param: LensParameterisation, z, A, T_SO_nominal, starts, robot_cov,
+                         **kw) -> JointCalibrationResult:
+    """joint_calibrate from each (X0, Z0) of ``starts`` in turn until the chi^2 test
+    accepts the fit (a flagged fit from a poor start is usually a local minimum);
+    returns the accepted or else the lowest-cost result. Typical starts: the two-stage
+    solution, then the nominal grasp and sensor placement of the robot program."""
+    best, error = None, None
+    for X0, Z0 in starts:
+        try:
+            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, **kw)
+        except CalibrationError as e:
+            error = e
+            continue
+        if best is None or res.chi2 < best.chi2:
+            best = res
+        if not res.mismatch:
+            break
+    if best is None:
+        raise error or CalibrationError("joint calibration: no start given")
+    return best
 
 
 def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z, T_SO_nominal, rng=None):

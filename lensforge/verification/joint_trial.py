@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..calibration.joint import joint_calibrate
+from ..calibration.joint import joint_calibrate_from
 from ..calibration.lens_params import LensParameterisation, parameterise
 from ..errors import LensforgeError
 from ..optics.pose import matrix_to_pose, transform_error
@@ -38,13 +38,15 @@ def nees(T_true, T_est, cov) -> float:
     return float(e @ np.linalg.solve(cov, e))
 
 
-def joint_trial_record(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, Z_true,
+def joint_trial_record(bench, param: LensParameterisation, z, A, T_SO_nominal, starts, robot_cov, Z_true,
                        X_true) -> dict:
-    """Run the joint calibration on one trial's data; a record like the trial's (ok,
+    """Run the joint calibration on one trial's data from the (X0, Z0) starts (the
+    two-stage solution, then the robot program's nominal X, Z; see
+    ``joint_calibrate_from``); a record like the trial's (ok,
     rot_err_deg, trans_err_mm, x_*), plus nees_Z (6 dof), chi2, dof, p_value,
     mismatch, theta, n_identifiable, iterations, converged, Z 1-sigma."""
     try:
-        res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov)
+        res = joint_calibrate_from(bench, param, z, A, T_SO_nominal, starts, robot_cov)
     except (LensforgeError, np.linalg.LinAlgError) as e:
         return {"ok": False, "failure": f"joint calibration failed: {e}", "rot_err_deg": None, "trans_err_mm": None}
     rot, trans = transform_error(Z_true, res.Z)

@@ -436,7 +436,8 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
         from .joint_trial import joint_trial_record
 
         rec["joint"] = joint_trial_record(ctx.bench, ctx.lens_parameterisation, z[lit], A_cmd[lit],
-                                          scene.T_SO_nominal, he.X, he.Z, scene.noise.cov, scene.Z, X_true)
+                                          scene.T_SO_nominal, [(he.X, he.Z), (scene.X, scene.Z)],
+                                          scene.noise.cov, scene.Z, X_true)
     return rec
 
 
