@@ -105,23 +105,3 @@ def test_cli_study_and_bad_tolerances(tmp_path):
     r = subprocess.run(exe + ["study", "zernike", "--lenses", "2", "--poses", "8", "--workers", "0",
                               "-t", str(tmp_path / "zero.toml"), "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "--resume" in r.stderr
-
-
-def test_self_calibration_recovers_index_and_z_from_exact_data():
-    from lensforge.calibration.robot import flange_pose
-    from lensforge.optics.pose import matrix_to_pose, pose_to_matrix, transform_error
-    from lensforge.verification.self_calibration import perturbed_lens, self_calibrate
-    from lensforge.verification.study import make_context, resolve_lens
-
-    lens, bench = resolve_lens("extended_polynomial")
-    ctx = make_context(lens, bench, None, StudyConfig(n_poses=8))
-    sc = ctx.scene
-    A = flange_pose(sc, ctx.plan, check_reach=False)
-    x = matrix_to_pose(np.linalg.solve(sc.T_SO_nominal, np.linalg.solve(sc.Z, A @ sc.X)))
-    z = ForwardModel(bench, perturbed_lens(lens, [0.005], ("index",))).evaluate(x).z
-    X0 = sc.X @ pose_to_matrix(np.r_[0.05, 0, 0, 0, 1e-3, 0])
-    Z0 = sc.Z @ pose_to_matrix(np.r_[0, 0.05, 0, 1e-3, 0, 0])
-    r = self_calibrate(bench, lens, z, A, X0, Z0, sc.T_SO_nominal, names=("index",), prior_sigma={"index": 1.0})
-    assert r.theta["index"] == pytest.approx(0.005, rel=1e-4)
-    rot, trans = transform_error(sc.Z, r.Z)
-    assert rot < 1e-6 and trans < 1e-5

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..optics.shack_hartmann import ForwardModel
 from .joint import chain_jacobians
 from .lens_params import LensParameterisation
 

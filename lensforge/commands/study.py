@@ -49,8 +49,6 @@ def study_cmd(
                                                         "default: all cores)"),
     scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
     resume: bool = typer.Option(False, "--resume", help="continue the study stored in the output folder"),
-    self_calibrate: bool = typer.Option(False, "--self-calibrate", help="also estimate as-built thickness, "
-                                                                        "index and form with the poses"),
     calibration: str = typer.Option("joint", "--calibration", help="two-stage (per-pose estimates, then AX = ZB) "
                                     "or joint (X, Z and the as-built lens from the raw Zernikes; both are stored)"),
     bench: Path = typer.Option(None, "--bench", help="bench TOML (default: the design's, else built-in)"),
@@ -62,7 +60,7 @@ def study_cmd(
 ):
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
     tol = _tolerances(tolerances)
-    cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg,
+    cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg,
                       calibration=calibration)
     b = load_bench(bench) if bench else None
     out.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from pathlib import Path
 
@@ -63,9 +63,7 @@ class StudyConfig:
     deg); handeye_method: "ml", "shah" or "li"; max_iter: LM iterations per pose;
     min_poses: fewer usable poses than this fails the trial; target_mm /
     target_deg: calibration accuracy target (summary and budget); percentile:
-    the percentile judged against the target; self_calibrate: also estimate the
-    dominant as-built parameters jointly with the poses (see self_calibration);
-    calibration: "two-stage" (per-pose estimates, then AX = ZB) or "joint" (also run
+    the percentile judged against the target; calibration: "two-stage" (per-pose estimates, then AX = ZB) or "joint" (also run
     the joint as-built calibration, ``calibration.joint``; both results are stored,
     the summary shows the requested one); joint_prior: the joint calibration's lens
     prior, "study" (the study's tolerances) or "default" (the default tolerance file).
@@ -80,7 +78,6 @@ class StudyConfig:
     target_mm: float = 0.1
     target_deg: float = 0.01
     percentile: float = 95.0
-    self_calibrate: bool = False
     calibration: str = "two-stage"
     joint_prior: str = "study"
 
@@ -365,8 +362,7 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     Keys: ok, failure ("" or why), rot_err_deg / trans_err_mm (Z = ^W T_S error),
     x_rot_err_deg / x_trans_err_mm (grasp X error), bias (6: mean estimate - truth,
     mm and rad), bias_std (6), n_used, n_pupil_lost, n_not_converged, chi2_dof
-    (pose fits, mean), handeye_chi2_dof, and, with self-calibration, the same
-    errors after it under "selfcal"; with calibration "joint", the joint calibration's
+    (pose fits, mean), handeye_chi2_dof, and, with calibration "joint", the joint calibration's
     record (``joint_trial.joint_trial_record``) under "joint", run on the same data
     from the two-stage solution.
     """
@@ -427,11 +423,6 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
            "bias": err.mean(axis=0).tolist(), "bias_std": err.std(axis=0).tolist(),
            "chi2_dof": float(np.mean(est.chi2[est.converged]) / max(len(nominal.modes) - 6, 1)),
            "handeye_chi2_dof": float(he.chi2_dof), "handeye_observable": bool(he.observable), **base}
-    if cfg.self_calibrate:
-        from .self_calibration import self_calibrate_trial
-
-        rec["selfcal"] = self_calibrate_trial(ctx, nominal, z[used], x_est, x_true[used], A_cmd[used], X_true,
-                                              he.Z, he.X, lens_ab)
     if cfg.calibration == "joint":
         from .joint_trial import joint_trial_record
 
@@ -518,14 +509,6 @@ class StudyResult:
     def n_lenses(self) -> int:
         return len(self.records)
 
-    def selfcal_summary(self) -> dict | None:
-        """Summary of the errors after as-built self-calibration (if it ran)."""
-        recs = [r.get("selfcal") for r in self.records]
-        if not recs or any(r is None for r in recs):
-            return None
-        t = self.summary["target"]
-        return summarize_errors(list(recs), t["translation_mm"], t["rotation_deg"], self.summary["percentile"])
-
     def to_dict(self) -> dict:
         """JSON-ready summary (schema_version, config hash, summary, per-trial errors)."""
         def fl(a):
@@ -537,9 +520,6 @@ class StudyResult:
              "store": str(self.store) if self.store else None,
              "run": {"n_run": self.stats.n_run, "n_resumed": self.stats.n_resumed, "wall_s": self.stats.wall_s,
                      "mode": self.stats.mode, "workers": self.stats.workers}}
-        sc = self.selfcal_summary()
-        if sc is not None:
-            d["selfcal_summary"] = sc
         if self.summary.get("calibration") == "joint":
             d["two_stage_summary"] = self.calibration_summary("two-stage")
             d["joint_summary"] = self.summary
@@ -674,7 +654,7 @@ def result_from_records(records: dict[int, dict], config: dict, chash: str, stor
 
 def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | None = None, n_poses: int = 24, *,
            workers: int | None = None, scheduler: str | None = None, store=None, resume: bool = False,
-           progress: bool = True, self_calibrate: bool = False, config: StudyConfig | None = None,
+           progress: bool = True, calibration: str = "two-stage", config: StudyConfig | None = None,
            plan_seed: int = 0, client=None) -> StudyResult:
     """As-built Monte Carlo of the calibration for ``n_lenses`` as-built lenses.
 
@@ -685,8 +665,8 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     workers: 0 = in this process, N = local Dask cluster of N processes (default:
     all cores); scheduler: address of an existing Dask scheduler; store: SQLite file
     to append finished trials to (resume=True continues a killed study; the store
-    refuses a different study); self_calibrate: also estimate as-built parameters
-    jointly with the poses. Returns a :class:`StudyResult` (errors in deg and mm).
+    refuses a different study); calibration: "two-stage" or "joint" (ignored when
+    ``config`` is given; see StudyConfig). Returns a :class:`StudyResult` (errors in deg and mm).
     A script that starts a local cluster (workers != 0) needs the usual
     ``if __name__ == "__main__":`` guard (worker processes are spawned).
     """
@@ -697,9 +677,7 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     lens, bench = resolve_lens(design_or_lens, bench)
     tol = resolve_tolerances(tolerances)
     if config is None:
-        config = StudyConfig(n_poses=int(n_poses), self_calibrate=bool(self_calibrate))
-    elif self_calibrate and not config.self_calibrate:
-        config = replace(config, self_calibrate=True)
+        config = StudyConfig(n_poses=int(n_poses), calibration=calibration)
     ctx = make_context(lens, bench, tol, config, plan_seed)
     cfg = context_config(ctx, seed)
     chash = config_hash(cfg)
