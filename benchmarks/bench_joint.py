@@ -3,7 +3,9 @@
 1. One joint calibration (calibration.joint.joint_calibrate) of n poses: the study's
    plan, an as-built lens drawn from theta's prior, robot and sensor noise, started
    0.3 mm / 0.5 deg off (the two-stage solution's typical error); median wall time over
-   --repeats draws, single core (BLAS pinned to one thread by the caller).
+   --repeats draws, single core (BLAS pinned to one thread by the caller). CPU time
+   (process_time) is reported beside wall time: on a shared machine it is the figure
+   that compares with the 2 s goal.
 2. --study N: an as-built study of N lenses with --calibration joint on --workers
    processes (default tolerances), wall time and the extrapolation to 1000 lenses.
 
@@ -24,6 +26,7 @@ from lensforge.calibration.joint import joint_calibrate, simulate_joint_data
 from lensforge.calibration.lens_params import parameterise
 from lensforge.manufacturing.tolerances import Tolerances
 from lensforge.optics.pose import pose_to_matrix
+from lensforge.optics.shack_hartmann import ForwardModel
 from lensforge.verification.study import StudyConfig, calibration_plan, resolve_lens, verify
 
 
@@ -37,25 +40,29 @@ def one_calibration(design: str, n_poses: int, repeats: int) -> None:
     param = parameterise(bench, lens, Tolerances(), plan)
     t_param = time.perf_counter() - t0
     rng = np.random.default_rng(0)
+    lit = ForwardModel(bench, param.build(np.zeros(param.k)), validate=False).evaluate(plan, check_range=False).valid
+    plan = plan[lit]  # poses that light the pupil for the mean as-built lens
     A_cmd = flange_pose(scene, plan, check_reach=False)
-    times, iters = [], []
+    times, cpu, iters = [], [], []
     off = np.r_[[0.3] * 3, [math.radians(0.5)] * 3]
     for _ in range(repeats):
         theta = rng.standard_normal(param.k)
-        A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, n_poses))
+        A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(plan)))
         try:
             z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
         except Exception:  # a draw that leaves a pose unlit: skip it
             continue
         X0 = scene.X @ pose_to_matrix(rng.standard_normal(6) * off)
         Z0 = scene.Z @ pose_to_matrix(rng.standard_normal(6) * off)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         res = joint_calibrate(bench, param, z, A_cmd, scene.T_SO_nominal, X0, Z0, scene.noise.cov)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
         iters.append(res.iterations)
     print(f"theta: {param.k} directions, chosen in {t_param:.2f} s (once per study)")
-    print(f"one joint calibration, {n_poses} poses: median {np.median(times):.2f} s, max {np.max(times):.2f} s "
-          f"over {len(times)} draws; median {np.median(iters):.0f} LM iterations")
+    print(f"one joint calibration, {len(plan)} lit of {n_poses} poses: median {np.median(cpu):.2f} s CPU "
+          f"(max {np.max(cpu):.2f}), {np.median(times):.2f} s wall over {len(times)} draws; "
+          f"median {np.median(iters):.0f} LM iterations")
 
 
 def study(design: str, n: int, workers: int, n_poses: int) -> None:
