@@ -401,9 +401,21 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     n_oor = int(est.out_of_range.sum())
     base = {"n_used": int(used.size), "n_pupil_lost": n_lost, "n_not_converged": n_nc, "n_out_of_range": n_oor,
             "grasp_error": g.tolist()}
+
+    def with_joint(rec: dict, starts) -> dict:
+        # the joint calibration needs no per-pose estimates: it runs whatever the two-stage outcome
+        if cfg.calibration == "joint":
+            from .joint_trial import joint_trial_record
+
+            rec["joint"] = joint_trial_record(ctx.bench, ctx.lens_parameterisation, z[lit], A_cmd[lit],
+                                              scene.T_SO_nominal, starts, scene.noise.cov, scene.Z, X_true)
+        return rec
+
+    nominal_start = [(scene.X, scene.Z)]  # the robot program's grasp and sensor placement
     if used.size < cfg.min_poses:
-        return _fail(f"too few usable poses: {used.size} of {n} ({n_lost} pupil lost for the as-built lens, "
-                     f"{n_nc} estimates not converged, of which {n_oor} left the bench's pose range)", **base)
+        why = (f"too few usable poses: {used.size} of {n} ({n_lost} pupil lost for the as-built lens, "
+               f"{n_nc} estimates not converged, of which {n_oor} left the bench's pose range)")
+        return with_joint(_fail(why, **base), nominal_start)
     x_est = est.poses[est.converged]
     err = x_est - x_true[used]
     cov = est.cov[est.converged]
@@ -415,7 +427,7 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
             he = solve_handeye(A_cmd[used], lens_pose_matrix(scene, x_est), cfg.handeye_method,
                                sigma=scene.noise, cov_B=cov_B, on_degenerate="warn")
     except LensforgeError as e:
-        return _fail(f"hand-eye failed: {e}", **base)
+        return with_joint(_fail(f"hand-eye failed: {e}", **base), nominal_start)
     rot, trans = transform_error(scene.Z, he.Z)
     xrot, xtrans = transform_error(X_true, he.X)
     rec = {"ok": True, "failure": "", "rot_err_deg": rot, "trans_err_mm": trans,
@@ -423,13 +435,7 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
            "bias": err.mean(axis=0).tolist(), "bias_std": err.std(axis=0).tolist(),
            "chi2_dof": float(np.mean(est.chi2[est.converged]) / max(len(nominal.modes) - 6, 1)),
            "handeye_chi2_dof": float(he.chi2_dof), "handeye_observable": bool(he.observable), **base}
-    if cfg.calibration == "joint":
-        from .joint_trial import joint_trial_record
-
-        rec["joint"] = joint_trial_record(ctx.bench, ctx.lens_parameterisation, z[lit], A_cmd[lit],
-                                          scene.T_SO_nominal, [(he.X, he.Z), (scene.X, scene.Z)],
-                                          scene.noise.cov, scene.Z, X_true)
-    return rec
+    return with_joint(rec, [(he.X, he.Z)] + nominal_start)
 
 
 # ----------------------------------------------------------------------------- the study
@@ -616,10 +622,11 @@ def context_config(ctx: StudyContext, seed: int) -> dict:
 
 def calibration_records(records, calibration: str) -> list[dict]:
     """Trial records of one calibration: the two-stage record itself, or its "joint"
-    sub-record (a trial whose simulation failed before calibrating fails for both)."""
+    sub-record (the joint calibration runs even when the two-stage one fails; a trial
+    whose simulation failed before calibrating fails for both)."""
     if calibration == "two-stage":
         return list(records)
-    return [r["joint"] if r["ok"] and "joint" in r else (r if not r["ok"] else
+    return [r["joint"] if "joint" in r else (r if not r["ok"] else
             {"ok": False, "failure": "joint calibration not run", "rot_err_deg": None, "trans_err_mm": None})
             for r in records]
 
