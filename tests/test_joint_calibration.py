@@ -184,3 +184,23 @@ def test_study_stores_both_calibrations(tmp_path):
     r = subprocess.run(exe + ["study", "zernike", "--lenses", "1", "--calibration", "both", "-o", str(tmp_path)],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "calibration" in r.stderr
+
+
+def test_joint_design_beats_random_and_matches_estimator(setup, param):
+    """The Ds-optimal joint design predicts a smaller Z uncertainty than the random plan
+    of the same size, and the prediction equals the estimator's own covariance at
+    noise-free data on the nominal lens (same information)."""
+    from lensforge.calibration.joint_design import box_candidates, design_joint_poses, predicted_joint_uncertainty
+
+    bench, lens, scene, plan = setup
+    A = flange_pose(scene, plan, check_reach=False)
+    z = simulate_joint_data(bench, param, np.zeros(param.k), A, scene.X, scene.Z, scene.T_SO_nominal)
+    res = joint_calibrate(bench, param, z, A, scene.T_SO_nominal, scene.X, scene.Z, scene.noise.cov)
+    pred = predicted_joint_uncertainty(bench, param, scene, plan)
+    assert pred["n_lit"] == len(plan)
+    np.testing.assert_allclose(np.sqrt(np.diag(pred["cov"])), np.sqrt(np.diag(res.cov)), rtol=1e-3)
+    span = np.r_[0.2, 0.2, 2.0, np.radians([6.0] * 3)]
+    cand = box_candidates(np.random.default_rng(0), span, 60)
+    d = design_joint_poses(bench, param, scene, len(plan), cand, compare=plan, check_reach=False, max_passes=2)
+    assert d.chosen["Z_rotation_deg"] < d.random["Z_rotation_deg"]
+    assert d.chosen["Z_translation_mm"] < d.random["Z_translation_mm"]
