@@ -37,6 +37,7 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import ConfigError
+from ..manufacturing.tolerances import scale_canonical
 from ..optics.lens import Lens
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.surfaces import CanonicalSurface, Freeform
@@ -51,11 +52,9 @@ MODE_NAMES = {2: "tilt x (wedge)", 3: "tilt y (wedge)", 4: "power", 5: "astigmat
 
 
 def _poly_sum(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sum of two square monomial arrays of possibly different degree."""
     n = max(a.shape[0], b.shape[0])
-    out = np.zeros((n, n))
-    out[: a.shape[0], : a.shape[1]] += a
-    out[: b.shape[0], : b.shape[1]] += b
-    return out
+    return np.pad(a, (0, n - a.shape[0])) + np.pad(b, (0, n - b.shape[0]))
 
 
 def _mode_poly(j: int, radius: float) -> np.ndarray:
@@ -63,15 +62,6 @@ def _mode_poly(j: int, radius: float) -> np.ndarray:
     m = np.asarray(zernike_monomials(j), float)
     pq = np.add.outer(np.arange(m.shape[0]), np.arange(m.shape[1]))
     return m / radius**pq
-
-
-def _scale_surface(cs: CanonicalSurface, s: float) -> CanonicalSurface:
-    """s * sag(x / s, y / s) (the part scaled about its vertex)."""
-    i = np.arange(1, len(cs.alpha) + 1)
-    d = cs.poly.shape[0]
-    pq = np.add.outer(np.arange(d), np.arange(d))
-    return CanonicalSurface(cs.c / s, cs.k, cs.alpha / s ** (2 * i - 1), cs.poly / s ** (pq - 1.0),
-                            cs.ripple_amplitude * s, cs.ripple_period * s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,7 +111,7 @@ class LensSpace:
                     poly = _poly_sum(poly, a * self._mode_polys[j])
             cs = CanonicalSurface(cs.c, cs.k, cs.alpha.copy(), poly, cs.ripple_amplitude, cs.ripple_period)
             if s != 1.0:
-                cs = _scale_surface(cs, s)
+                cs = scale_canonical(cs, s)
             sign = 1.0 if side == "front" else -1.0  # removal moves the surface into the material
             depth, roll = v[f"{side}_polish_depth_mm"], v[f"{side}_rolloff_mm"]
             if depth or roll:
