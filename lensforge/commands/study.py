@@ -76,17 +76,17 @@ def study_cmd(
     info(f"{s['n_ok']} of {s['n_lenses']} {calibration} calibrations succeeded ({res.stats.n_resumed} resumed, "
          f"{res.stats.wall_s:.1f} s, {res.stats.mode})")
     _print_errors(s)
+    info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
+         f"{'met' if s['meets_target'] else 'NOT met'}")
+    if s["failures"]:
+        info(f"  failures: {s['failures']}")
     if calibration == "joint":
         j = s["joint"]
         if j["nees_dof"] is not None:
             info(f"  joint: NEES/dof of Z {j['nees_dof']:.2f}, chi2 mismatch flagged in {j['mismatch_rate']:.0%} "
                  f"of lenses, median {j['n_identifiable_median']:g} identifiable lens directions")
-        info("  two-stage on the same data:")
+        info("two-stage calibration on the same data:")
         _print_errors(d["two_stage_summary"])
-    info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
-         f"{'met' if s['meets_target'] else 'NOT met'}")
-    if s["failures"]:
-        info(f"  failures: {s['failures']}")
     info(f"wrote {out / 'store.sqlite'}, {out / 'summary.json'}, {out / 'errors.png'}")
     if json_out:
         emit_json(d)
