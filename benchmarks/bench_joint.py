@@ -25,15 +25,17 @@ import numpy as np
 from lensforge.calibration.joint import joint_calibrate, simulate_joint_data
 from lensforge.calibration.lens_params import parameterise
 from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.optics.lens import resolve_lens
 from lensforge.optics.pose import pose_to_matrix
 from lensforge.optics.shack_hartmann import ForwardModel
-from lensforge.verification.study import StudyConfig, calibration_plan, resolve_lens, verify
+from lensforge.verification.study import StudyConfig, calibration_plan, verify
 
 
 def one_calibration(design: str, n_poses: int, repeats: int) -> None:
     from lensforge.calibration.robot import flange_pose, paper_scene
 
-    lens, bench = resolve_lens(design)
+    r = resolve_lens(design)
+    lens, bench = r.lens, r.bench_or()
     scene = paper_scene(bench.placement.distance_mm)
     plan = calibration_plan(StudyConfig(n_poses=n_poses))
     t0 = time.perf_counter()

@@ -10,8 +10,8 @@ import pytest
 from lensforge.errors import ConfigError
 from lensforge.manufacturing.tolerances import Tolerances
 from lensforge.optics.shack_hartmann import ForwardModel
-from lensforge.calibration.pose_estimation import estimate_pose_model
-from lensforge.verification.study import StudyConfig, estimate_poses_batch, verify
+from lensforge.calibration.pose_estimation import estimate_pose_model, estimate_poses_batch
+from lensforge.verification.study import StudyConfig, verify
 
 CFG = StudyConfig(n_poses=8, min_poses=4)
 

@@ -46,6 +46,7 @@ from scipy.special import chdtrc
 
 from ..errors import CalibrationError
 from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, rotations
+from ..optics.sensitivity import jacobian
 from ..optics.shack_hartmann import ForwardModel
 from .lens_params import LensParameterisation
 
@@ -198,16 +199,11 @@ class JointProblem:
         c = float(np.sum(r * r)) + float(np.sum((a @ self.WA.T) ** 2))
         return c + (float(theta @ theta) if self.theta_prior else 0.0)
 
-    def pose_jacobian(self, theta, x, uv):
-        """Whitened dh/dx (n, m, 6), central differences with the bench's steps."""
-        h = np.asarray(self.bench.fd_steps, dtype=float)
-        steps = np.concatenate([np.diag(h), -np.diag(h)])
-        poses = (x[:, None, :] + steps[None]).reshape(-1, 6)
-        res = self.model(theta).evaluate(poses, uv0=np.repeat(uv, 12, axis=0), check_range=False)
-        self.n_traced += poses.shape[0]
-        zz = res.z.reshape(self.n, 12, -1)
-        d = (zz[:, :6] - zz[:, 6:]) / (2 * h[None, :, None])  # (n, 6, m)
-        return np.einsum("ij,npj->nip", self.Li, d)
+    def pose_jacobian(self, theta, x, uv, z0):
+        """Whitened dh/dx (n, m, 6): the optics' one batched central-difference Jacobian."""
+        J, _, _ = jacobian(self.model(theta), x, uv=uv, z0=z0)
+        self.n_traced += 12 * self.n
+        return np.einsum("ij,njp->nip", self.Li, J)
 
     def theta_jacobian(self, theta, x, z0, uv):
         """Whitened dh/dtheta (n, m, k): forward differences of the lens (h is nearly
@@ -329,7 +325,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     x_S = None
     for it in range(1, max_iter + 1):
         if x_S is None or np.max(np.abs(x - x_S) / fd) > 0.0:  # poses moved: fresh dh/dx
-            S = pb.pose_jacobian(theta, x, uv)
+            S = pb.pose_jacobian(theta, x, uv, zm)
             x_S = x.copy()
         Jg, Ja = pb.blocks(S, Jt, B, x, X)
         Hgg, bg, Haa, Hga, ba = _normal_equations(Jg, Ja, r, a, theta, pb.WA, theta_prior)
@@ -369,7 +365,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             converged = True
             break
     # covariance at the estimate, with fresh central Jacobians
-    S = pb.pose_jacobian(theta, x, uv)
+    S = pb.pose_jacobian(theta, x, uv, zm)
     Jt = pb.theta_jacobian(theta, x, zm, uv)
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)
