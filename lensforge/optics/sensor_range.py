@@ -1,0 +1,117 @@
+"""What a Shack-Hartmann lenslet measures, and whether the sensor can still measure it.
+
+Centroid model (DESIGN.md, Zernike convention). A lenslet of pitch p and focal
+length f images its square sub-aperture's field into a spot; the centroid of the
+far-field spot of a field E = sqrt(I) exp(i k W) is, exactly (the first moment of
+the angular spectrum), f times the irradiance-weighted mean slope of W over the
+sub-aperture. lensforge therefore reports per lenslet
+
+    s = sum_q w_q I(X_q) s(X_q) / sum_q w_q I(X_q)
+
+with a Gauss-Legendre rule (``quadrature_rule``) of rays aimed at the points X_q
+of the sub-aperture (exact for bicubic I*s; the error falls as p^4) and
+I = I_beam / |det d(X,Y)/d(u,v)| (flux conservation).
+* threshold: a lenslet is used only when its mean irradiance sum_q w_q I_q is at
+  least ``sensor.irradiance_threshold`` of the beam peak. Inside a used lenslet the
+  centroid is unthresholded: Thorlabs' software cuts the noise floor per spot area
+  automatically (WFS Series manual, 2007-2012, "Noise Cut Level", p. 72), which is
+  modelled as removing background only. The residual of a real windowed,
+  thresholded pixel centroid (side-lobe truncation) is not modelled; the
+  physical-optics check (tests/physical_optics.py) measures it.
+* window: the spot's main lobe (half-width g = lambda f / p, first zero of the
+  square aperture's sinc^2) must stay where the software can assign it
+  (``sensor.spot_assignment``):
+  - 'fixed': inside the lenslet's own p x p window, |f s_x|, |f s_y| <= p/2 - g;
+  - 'tracking': neighbouring spots must not overlap, p + f (s_b - s_a) >= 2 g along
+    each axis for adjacent lenslets a, b (local wavefront curvature limit), and every
+    spot stays on the camera, |c + f s| <= aperture/2 - g;
+  - 'none': no check.
+  ``range_use`` expresses each rule as a fraction of its limit (<= 1: in range), so a
+  design constraint can ask for a margin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from .bench import Sensor
+
+__all__ = ["quadrature_rule", "spot_guard_mm", "range_use", "SensorRange", "summarize_range"]
+
+
+@lru_cache(maxsize=8)
+def quadrature_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets (n*n, 2) in units of the pitch, weights (n*n,) summing to 1) over the
+    square [-1/2, 1/2]^2: the tensor Gauss-Legendre rule (n = 1: the centre)."""
+    x, w = np.polynomial.legendre.leggauss(int(n))
+    X, Y = np.meshgrid(0.5 * x, 0.5 * x, indexing="xy")
+    W = np.outer(0.5 * w, 0.5 * w)
+    off = np.stack([X.ravel(), Y.ravel()], axis=1)
+    wt = W.ravel()
+    for a in (off, wt):
+        a.setflags(write=False)
+    return off, wt
+
+
+def spot_guard_mm(sensor: Sensor, wavelength_nm: float) -> float:
+    """Half-width of the spot's main lobe, lambda f / p (mm): the window guard."""
+    return wavelength_nm * 1e-6 * sensor.lenslet_focal_mm / sensor.pitch_mm
+
+
+def range_use(sensor: Sensor, wavelength_nm: float, centres: np.ndarray, neighbours: np.ndarray,
+              slopes: np.ndarray) -> np.ndarray:
+    """(P, n) fraction of the spot-assignment limit each lenslet uses (<= 1: assignable).
+
+    centres: (n, 2) mm; neighbours: (k, 3) rows (a, b, axis) of adjacent pupil lenslets
+    with b one pitch after a along axis; slopes: (P, n, 2) rad (centroid slopes).
+    """
+    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    g = spot_guard_mm(sensor, wavelength_nm)
+    shift = f * np.asarray(slopes)  # spot displacement on the camera, mm
+    if sensor.spot_assignment == "none":
+        return np.zeros(shift.shape[:-1])
+    if sensor.spot_assignment == "fixed":
+        return np.max(np.abs(shift), axis=-1) / (0.5 * p - g)
+    # tracking: neighbouring main lobes must not overlap; spots stay on the camera
+    use = np.max(np.abs(centres + shift), axis=-1) / (0.5 * sensor.aperture_mm - g)
+    if len(neighbours):
+        a, b, ax = neighbours[:, 0], neighbours[:, 1], neighbours[:, 2]
+        closing = -(shift[:, b, ax] - shift[:, a, ax]) / (p - 2.0 * g)
+        pair = np.zeros_like(use)
+        for idx in (a, b):
+            np.maximum.at(pair, (slice(None), idx), closing)
+        use = np.maximum(use, pair)
+    return use
+
+
+@dataclass(frozen=True)
+class SensorRange:
+    """Sensor range at one pose: ok (every pupil lenslet assignable), max_slope_mrad
+    (largest centroid slope component), lenslets_out (count), max_use (largest fraction
+    of the assignment limit), model (sensor.spot_assignment), window_limit_mrad (the
+    fixed-window slope limit (p/2 - g)/f, for reference)."""
+
+    ok: bool
+    max_slope_mrad: float
+    lenslets_out: int
+    max_use: float
+    model: str
+    window_limit_mrad: float
+
+    def to_dict(self) -> dict:
+        return {"ok": bool(self.ok), "max_slope_mrad": float(self.max_slope_mrad),
+                "lenslets_out": int(self.lenslets_out), "max_use": float(self.max_use),
+                "model": self.model, "window_limit_mrad": float(self.window_limit_mrad)}
+
+
+def summarize_range(sensor: Sensor, wavelength_nm: float, slopes: np.ndarray, use: np.ndarray) -> SensorRange:
+    """SensorRange of one pose from its (n, 2) slopes and (n,) range use."""
+    g = spot_guard_mm(sensor, wavelength_nm)
+    return SensorRange(
+        ok=bool(np.all(use <= 1.0)), max_slope_mrad=float(np.max(np.abs(slopes)) * 1e3),
+        lenslets_out=int(np.sum(use > 1.0)), max_use=float(np.max(use)), model=sensor.spot_assignment,
+        window_limit_mrad=(0.5 * sensor.pitch_mm - g) / sensor.lenslet_focal_mm * 1e3,
+    )
