@@ -70,21 +70,20 @@ def spot_moment_slopes(model: ForwardModel, pose, n_grid: int = 240, M: int = 24
     return np.einsum("nq,nqk->nk", I, v[..., :2]) / I.sum(axis=1)[:, None], res
 
 
-def _potential(xl, yl, sx, sy, deg: int = 6):
-    """Coefficients of W = sum c_ab x^a y^b (a + b in 1..deg) fitting grad W = (sx, sy) (least squares)."""
-    terms = [(a, b) for n in range(1, deg + 1) for a in range(n + 1) for b in [n - a]]
-    Ax = np.stack([a * xl ** max(a - 1, 0) * yl**b if a else 0 * xl for a, b in terms], 1)
-    Ay = np.stack([b * xl**a * yl ** max(b - 1, 0) if b else 0 * xl for a, b in terms], 1)
-    c, *_ = np.linalg.lstsq(np.vstack([Ax, Ay]), np.concatenate([sx, sy]), rcond=None)
-    W = sum(ci * xl**a * yl**b for ci, (a, b) in zip(c, terms))
-    return W
+def _potential_basis(xl, yl, deg: int = 6):
+    """(values, d/dx, d/dy) of the monomials x^a y^b, 1 <= a + b <= deg, at the points (columns)."""
+    terms = [(a, n - a) for n in range(1, deg + 1) for a in range(n + 1)]
+    V = np.stack([xl**a * yl**b for a, b in terms], 1)
+    Ax = np.stack([a * xl ** max(a - 1, 0) * yl**b for a, b in terms], 1)
+    Ay = np.stack([b * xl**a * yl ** max(b - 1, 0) for a, b in terms], 1)
+    return V, Ax, Ay
 
 
-def simulate_centroids(model: ForwardModel, pose, n_grid: int = 240, M: int = 24, window_px: int = 27,
-                       sub: int = 3, threshold: float = 0.0, follow: bool = True):
-    """(slopes (n, 2) rad from simulated spot centroids, spot displacements (n, 2) mm, lensforge result).
+def simulate_centroids(model: ForwardModel, pose, n_grid: int = 160, M: int = 24, window_px: int = 27,
+                       sub: int = 2, threshold: float = 0.0, follow: bool = True):
+    """(slopes (n, 2) rad from simulated pixel-window spot centroids, spot displacements (n, 2) mm, lensforge result).
 
-    follow=True centres each camera window on the spot (its position from the ray field's mean tilt);
+    follow=True centres each camera window on the spot (at f times the sub-aperture's mean ray slope);
     follow=False uses the lenslet's own fixed window (the spot may leave it).
     """
     bench = model.bench
@@ -94,33 +93,28 @@ def simulate_centroids(model: ForwardModel, pose, n_grid: int = 240, M: int = 24
     k = 2 * np.pi / lam
     interp, res = _ray_field(model, pose, n_grid)
     t = (np.arange(M) + 0.5) / M - 0.5  # midpoint samples over the sub-aperture (units of p)
-    XL, YL = np.meshgrid(p * t, p * t, indexing="xy")
-    dx = p / M
-    px = sen.pixel_mm
-    cam = (np.arange(window_px * sub) + 0.5) / sub - 0.5 * window_px  # camera sample coords (pixels)
-    out = np.zeros((len(model.pupil.centres), 2))
-    disp = np.zeros_like(out)
-    for i, (cx, cy) in enumerate(model.pupil.centres):
-        v = interp(cx + XL, cy + YL)
-        sx, sy, I = v[..., 0], v[..., 1], v[..., 2]
-        # remove the sub-aperture's mean tilt t0 analytically: the spot of E exp(-i k t0.x) sits t0 f closer
-        t0 = np.array([np.mean(sx), np.mean(sy)])
-        W = _potential(XL.ravel() / p, YL.ravel() / p, (sx - t0[0]).ravel() * p, (sy - t0[1]).ravel() * p)
-        E = np.sqrt(np.clip(I, 0, None)) * np.exp(1j * k * W.reshape(M, M))
-        centre = f * t0 if follow else np.zeros(2)  # camera window centre relative to the lenslet axis
-        xi = centre[0] - f * t0[0] + cam * px  # camera coords relative to the de-tilted spot
-        eta = centre[1] - f * t0[1] + cam * px
-        Fx = np.exp(-2j * np.pi * np.outer(xi, p * t) / (lam * f)) * dx
-        Fy = np.exp(-2j * np.pi * np.outer(eta, p * t) / (lam * f)) * dx
-        A = Fy @ E @ Fx.T  # (eta, xi)
-        inten = np.abs(A) ** 2
-        inten = inten.reshape(window_px, sub, window_px, sub).sum(axis=(1, 3))  # pixel integration
-        if threshold > 0:
-            inten = np.clip(inten - threshold * inten.max(), 0, None)
-        cpx = (np.arange(window_px) - 0.5 * (window_px - 1)) * px
-        tot = inten.sum()
-        mx = (inten.sum(axis=0) @ cpx) / tot + centre[0]
-        my = (inten.sum(axis=1) @ cpx) / tot + centre[1]
-        disp[i] = (mx, my)
-        out[i] = (mx / f, my / f)
-    return out, disp, res
+    XL, YL = np.meshgrid(t, t, indexing="xy")
+    c = model.pupil.centres
+    v = interp(c[:, None, 0] + p * XL.ravel()[None, :], c[:, None, 1] + p * YL.ravel()[None, :])  # (n, M*M, 3)
+    sx, sy, I = v[..., 0], v[..., 1], v[..., 2]
+    # remove each sub-aperture's mean tilt t0 analytically (its spot sits at f t0); fit the rest as a potential
+    t0 = np.stack([sx.mean(axis=1), sy.mean(axis=1)], 1)
+    V, Ax, Ay = _potential_basis(XL.ravel(), YL.ravel())
+    rhs = np.concatenate([(sx - t0[:, :1]) * p, (sy - t0[:, 1:]) * p], axis=1).T  # (2 M^2, n)
+    coef, *_ = np.linalg.lstsq(np.vstack([Ax, Ay]), rhs, rcond=None)
+    W = (V @ coef).T.reshape(-1, M, M)  # mm of OPD
+    E = np.sqrt(np.clip(I, 0, None)).reshape(-1, M, M) * np.exp(1j * k * W)
+    centre = f * t0 if follow else np.zeros_like(t0)  # camera window centre relative to the lenslet axis
+    cam = ((np.arange(window_px * sub) + 0.5) / sub - 0.5 * window_px) * sen.pixel_mm
+    xi = centre[:, :1] - f * t0[:, :1] + cam[None, :]  # (n, K) camera coords relative to the de-tilted spot
+    eta = centre[:, 1:] - f * t0[:, 1:] + cam[None, :]
+    Fx = np.exp(-2j * np.pi * xi[:, :, None] * (p * t)[None, None, :] / (lam * f))  # (n, K, M)
+    Fy = np.exp(-2j * np.pi * eta[:, :, None] * (p * t)[None, None, :] / (lam * f))
+    A = np.einsum("nim,nml,njl->nij", Fy, E, Fx)  # (n, eta, xi)
+    inten = (np.abs(A) ** 2).reshape(-1, window_px, sub, window_px, sub).sum(axis=(2, 4))  # pixel integration
+    if threshold > 0:
+        inten = np.clip(inten - threshold * inten.max(axis=(1, 2), keepdims=True), 0, None)
+    cpx = (np.arange(window_px) - 0.5 * (window_px - 1)) * sen.pixel_mm
+    tot = inten.sum(axis=(1, 2))
+    disp = np.stack([inten.sum(axis=1) @ cpx / tot, inten.sum(axis=2) @ cpx / tot], 1) + centre
+    return disp / f, disp, res

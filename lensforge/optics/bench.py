@@ -75,6 +75,10 @@ class Sensor:
     optical dynamic range; ASSUMPTION that the WFS40 software tracks this far: Thorlabs
     quotes its range as a local-curvature limit, whose value was not found here);
     'none' -- no range check (the pre-issue-14 model). The default is 'tracking'.
+    centroid_window_px: side of the square pixel window, centred on the spot, in which
+    the centroid is taken (ASSUMPTION 27 px = one 150 um pitch; 0 = complete-spot
+    centroid); centroid_threshold: noise cut as a fraction of the spot peak
+    subtracted before the centroid (ASSUMPTION 0, see ``sensor_range.py``).
     """
 
     pitch_mm: float = 0.150
@@ -87,6 +91,8 @@ class Sensor:
     pixel_mm: float = 0.0055
     spot_assignment: str = "tracking"
     subaperture_quadrature: int = 2
+    centroid_window_px: int = 27
+    centroid_threshold: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -169,7 +175,8 @@ _POSITIVE = {
     "sensor.pixel_mm", "sensor.subaperture_quadrature",
 }
 SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
-_NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold"}
+_NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
+           "sensor.centroid_threshold"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
 
 
@@ -200,7 +207,7 @@ def _validate(obj, prefix: str = "") -> None:
                 _check_number(f"{name}[{i}]", e)
             vals = list(map(float, v))
         else:
-            _check_number(name, v, integer=f.name in ("zernike_order", "subaperture_quadrature"))
+            _check_number(name, v, integer=f.name in ("zernike_order", "subaperture_quadrature", "centroid_window_px"))
             vals = [float(v)]
         if name in _POSITIVE and min(vals) <= 0:
             raise ConfigError(f"{name}: must be > 0, got {v!r}")
@@ -224,6 +231,8 @@ def _validate(obj, prefix: str = "") -> None:
             )
         if not 1 <= obj.subaperture_quadrature <= 6:
             raise ConfigError(f"sensor.subaperture_quadrature: must be 1..6 points per axis, got {obj.subaperture_quadrature}")
+        if obj.centroid_threshold >= 1:
+            raise ConfigError(f"sensor.centroid_threshold: must be < 1 (fraction of the spot peak), got {obj.centroid_threshold}")
         if obj.irradiance_threshold >= 1:
             raise ConfigError(f"sensor.irradiance_threshold: must be < 1 (fraction of beam peak), got {obj.irradiance_threshold}")
         del reach

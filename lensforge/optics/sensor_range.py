@@ -11,13 +11,25 @@ sub-aperture. lensforge therefore reports per lenslet
 with a Gauss-Legendre rule (``quadrature_rule``) of rays aimed at the points X_q
 of the sub-aperture (exact for bicubic I*s; the error falls as p^4) and
 I = I_beam / |det d(X,Y)/d(u,v)| (flux conservation).
+  A camera centroid is taken over a window of pixels, which truncates the spot's
+  sinc^2 side lobes; the part of the slope that comes from the irradiance weighting
+  (s_w - s_u, with s_u the plain mean slope of the same quadrature) is then seen with
+  a gain gamma < 1, so the model reports
+
+    s = s_u + gamma (s_w - s_u),
+
+  gamma from ``window_gain``: a small Fraunhofer computation of one sub-aperture
+  (linear irradiance ramp, weak curvature) imaged by the lenslet onto a
+  ``sensor.centroid_window_px`` square of ``sensor.pixel_mm`` pixels centred on the
+  spot, with ``sensor.centroid_threshold`` x peak subtracted (0.866 for the default
+  WFS40 bench; 1 for ``centroid_window_px = 0``, the complete-spot centroid). The
+  gain is the first-order (small curvature) value; tests/test_physical_optics.py
+  checks the whole model against simulated pixel centroids of real lenses.
 * threshold: a lenslet is used only when its mean irradiance sum_q w_q I_q is at
-  least ``sensor.irradiance_threshold`` of the beam peak. Inside a used lenslet the
-  centroid is unthresholded: Thorlabs' software cuts the noise floor per spot area
-  automatically (WFS Series manual, 2007-2012, "Noise Cut Level", p. 72), which is
-  modelled as removing background only. The residual of a real windowed,
-  thresholded pixel centroid (side-lobe truncation) is not modelled; the
-  physical-optics check (tests/physical_optics.py) measures it.
+  least ``sensor.irradiance_threshold`` of the beam peak. Thorlabs' software cuts the
+  noise floor per spot area ("Auto" noise cut, recommended; WFS Series manual,
+  2007-2012, p. 72); ``centroid_threshold`` (default 0, ASSUMPTION) models a cut at a
+  fraction of the spot peak.
 * window: the spot's main lobe (half-width g = lambda f / p, first zero of the
   square aperture's sinc^2) must stay where the software can assign it
   (``sensor.spot_assignment``):
@@ -39,7 +51,7 @@ import numpy as np
 
 from .bench import Sensor
 
-__all__ = ["quadrature_rule", "spot_guard_mm", "range_use", "SensorRange", "summarize_range"]
+__all__ = ["quadrature_rule", "spot_guard_mm", "window_gain", "range_use", "SensorRange", "summarize_range"]
 
 
 @lru_cache(maxsize=8)
@@ -54,6 +66,35 @@ def quadrature_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
     for a in (off, wt):
         a.setflags(write=False)
     return off, wt
+
+
+@lru_cache(maxsize=32)
+def _window_gain(pitch, focal, pixel, window_px, threshold, wavelength_mm) -> float:
+    M, sub = 128, 4  # gamma converges as 1/M^2: 0.8694 (M = 32), 0.8707 (64), 0.8707 (128)
+    t = pitch * ((np.arange(M) + 0.5) / M - 0.5)
+    X, Y = np.meshgrid(t, t, indexing="xy")
+    eps, kappa = 0.1, 0.01  # irradiance ramp over the pitch; wavefront curvature 1/mm
+    inten_ap = 1.0 + eps * X / pitch
+    k = 2 * np.pi / wavelength_mm
+    E = np.sqrt(inten_ap) * np.exp(1j * k * 0.5 * kappa * X**2)
+    moment = focal * kappa * np.sum(inten_ap * X) / np.sum(inten_ap)  # complete-spot centroid shift, mm
+    cam = ((np.arange(window_px * sub) + 0.5) / sub - 0.5 * window_px) * pixel
+    F = np.exp(-2j * np.pi * np.outer(cam, t) / (wavelength_mm * focal))
+    A = F @ E @ F.T  # (y, x) on the camera samples
+    inten = (np.abs(A) ** 2).reshape(window_px, sub, window_px, sub).sum(axis=(1, 3))
+    if threshold > 0:
+        inten = np.clip(inten - threshold * inten.max(), 0.0, None)
+    c = (np.arange(window_px) - 0.5 * (window_px - 1)) * pixel
+    centroid = inten.sum(axis=0) @ c / inten.sum()
+    return float(centroid / moment)
+
+
+def window_gain(sensor: Sensor, wavelength_nm: float) -> float:
+    """Gain of the pixel-window centroid on the irradiance-weighting part of the slope (1 = complete spot)."""
+    if sensor.centroid_window_px == 0:
+        return 1.0
+    return _window_gain(sensor.pitch_mm, sensor.lenslet_focal_mm, sensor.pixel_mm, int(sensor.centroid_window_px),
+                        float(sensor.centroid_threshold), wavelength_nm * 1e-6)
 
 
 def spot_guard_mm(sensor: Sensor, wavelength_nm: float) -> float:
