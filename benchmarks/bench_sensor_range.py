@@ -12,8 +12,6 @@ Run: .venv/bin/python benchmarks/bench_sensor_range.py
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 import lensforge as lf
@@ -21,17 +19,9 @@ from lensforge.design.sensor_bench import best_distance, measurable_geometry
 from lensforge.optics.sensitivity import sensitivity_from_model
 from lensforge.optics.shack_hartmann import ForwardModel
 
+from bench_optics import best_of  # the script's folder is on sys.path
+
 LENSES = ["spherical", "polynomial", "extended_polynomial", "zernike"]
-
-
-def best_of(fn, repeat=5, number=10):
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(number):
-            fn()
-        best = min(best, (time.perf_counter() - t0) / number)
-    return best
 
 
 def main():
@@ -43,7 +33,7 @@ def main():
         for q in (1, 2):
             m = ForwardModel(bench.replace(sensor={"subaperture_quadrature": q}), lens)
             sensitivity_from_model(m)
-            t[q] = best_of(lambda: sensitivity_from_model(m))
+            t[q] = best_of(lambda: sensitivity_from_model(m), repeat=5, number=10)
         print(f"  {name:20s} centre {t[1] * 1e3:6.2f} ms  2x2 quadrature {t[2] * 1e3:6.2f} ms  ratio {t[2] / t[1]:.2f}")
     print("2. nominal pose vs lenslet focal length (max slope mrad; lenslets out of 113: fixed / tracking)")
     for name in LENSES:

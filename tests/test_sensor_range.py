@@ -78,3 +78,27 @@ def test_spot_assignment_is_a_checked_bench_setting(bench, tmp_path):
     b = bench.replace(sensor={"spot_assignment": "fixed", "lenslet_focal_mm": 4.1})
     lf.save_bench(b, tmp_path / "b.toml")
     assert lf.load_bench(tmp_path / "b.toml") == b
+
+
+def test_design_constraint_keeps_spots_assignable_with_margin(bench):
+    from lensforge.design.constraints import Constraints, check_design
+
+    lens = lf.paper_lens("polynomial")
+    ok = check_design(bench, lens, Constraints())
+    assert "sensor_range" not in [v.constraint for v in ok.violations]
+    fixed = bench.replace(sensor={"spot_assignment": "fixed"})
+    bad = check_design(fixed, lens, Constraints())
+    v = [v for v in bad.violations if v.constraint == "sensor_range"]
+    assert v and v[0].value > v[0].limit == pytest.approx(0.8) and "range_margin" in v[0].message
+    with pytest.raises(ConfigError, match="range_margin"):
+        Constraints(range_margin=1.0)
+
+
+def test_bench_geometry_scan_finds_the_measurable_distances(bench):
+    from lensforge.design.sensor_bench import best_distance, measurable_geometry
+
+    fixed = bench.replace(sensor={"spot_assignment": "fixed"})
+    rows = measurable_geometry(fixed, lf.paper_lens("polynomial"), [10.0, 20.0], [0.6, 0.9])
+    best = best_distance(rows)
+    assert best[0.9] is None  # radius 0.9 mm: 16 spots leave their windows at 20 mm, more at 10 mm
+    assert best[0.6] is not None and 20.0 in best[0.6]["measurable_mm"]
