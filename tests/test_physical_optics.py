@@ -59,12 +59,12 @@ def test_spots_leaving_fixed_windows_are_flagged(bench):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["spherical", "extended_polynomial", "zernike"])
-def test_strongly_curved_lenses_model_error_is_bounded(bench, name):
-    # Known limit of the first-order window gain: on the paper's strongly curved lenses the residual
-    # is 0.5-1.3 sigma (Z4 spherical, Z5 extended polynomial, M = 64) -- against 15-30 sigma for the
-    # old lenslet-centre model
+@pytest.mark.parametrize("name,tol", [("extended_polynomial", 0.3), ("spherical", 1.0), ("zernike", 1.0)])
+def test_other_paper_lenses_against_pixel_centroids(bench, name, tol):
+    # measured (M = 64, 2 poses): extended polynomial <= 0.06 sigma; the strongly converging spherical
+    # and Zernike lenses 0.5-0.7 sigma in Z4 (the first-order window gains' known limit), against 15-30
+    # sigma for the old lenslet-centre model
     model = ForwardModel(bench, lf.paper_lens(name))
     for pose in POSES[:2]:
         slopes, _, res = simulate_centroids(model, pose, n_grid=120, M=64)
-        assert np.max(np.abs(_dz_sigma(model, slopes, res.z[0]))) < 2.0
+        assert np.max(np.abs(_dz_sigma(model, slopes, res.z[0]))) < tol

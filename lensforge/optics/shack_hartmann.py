@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .sensor_range import SensorRange, quadrature_rule, range_use, summarize_range, window_gain
+from .sensor_range import SensorRange, centroid_slopes, quadrature_rule, range_use, summarize_range, window_gain
 from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel
 from .zernike import modes_up_to_order, zernike_gradient
 
@@ -213,7 +213,8 @@ class ForwardModel:
         self.lens = lens.validate() if validate else lens
         self.kernel = lens_kernel(lens, bench.laser.wavelength_nm)
         self.pupil = lenslet_pupil(bench.sensor)
-        off, self.quad_weights = quadrature_rule(bench.sensor.subaperture_quadrature)
+        off, w = quadrature_rule(bench.sensor.subaperture_quadrature)
+        self.quad_offsets, self.quad_weights = off, w
         self.window_gain = window_gain(bench.sensor, bench.laser.wavelength_nm)
         # aim targets: the quadrature points of every lenslet, lenslet-major (n * q, 2)
         self.targets = np.ascontiguousarray(
@@ -249,11 +250,7 @@ class ForwardModel:
         st = st.reshape(P, n_l, q)
         wi = np.where(st == OK, irr.reshape(P, n_l, q), 0.0) * self.quad_weights
         irr_mean = wi.sum(axis=2)
-        sq = sq.reshape(P, n_l, q, 2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s_w = np.einsum("plq,plqk->plk", wi, sq) / irr_mean[..., None]  # irradiance-weighted mean
-        s_u = np.einsum("q,plqk->plk", self.quad_weights, sq)  # plain mean over the sub-aperture
-        slopes = s_u + self.window_gain * (s_w - s_u)  # the pixel-window centroid (sensor_range.py)
+        slopes = centroid_slopes(sq.reshape(P, n_l, q, 2), wi, self.quad_offsets, self.quad_weights, self.window_gain)
         status = st.max(axis=2)  # OK (0) only if every quadrature ray is OK
         slopes = np.where((status == OK)[..., None] & (irr_mean > 0)[..., None], slopes, 0.0)
         thr = sensor.irradiance_threshold
