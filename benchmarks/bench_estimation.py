@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import lensforge as lf  # noqa: E402
 from lensforge.optics.bench import write_atomic  # noqa: E402
 from lensforge.optics.shack_hartmann import ForwardModel  # noqa: E402
-from lensforge.verification.initial_poses import InitialPoseModel, prior_covariance  # noqa: E402
-from lensforge.verification.pose_estimation import UnobservableWarning, estimate_pose_model  # noqa: E402
+from lensforge.calibration.initial_poses import InitialPoseModel, prior_covariance  # noqa: E402
+from lensforge.calibration.pose_estimation import UnobservableWarning, estimate_pose_model  # noqa: E402
 from lensforge.verification.scenario import ScenarioConfig, plan_poses, run_calibration  # noqa: E402
 
 LENSES = ("spherical", "polynomial", "extended_polynomial", "zernike")

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from lensforge.verification.handeye import METHODS, solve_handeye
-from lensforge.verification.robot import paper_scene, random_lens_poses, simulate_calibration
+from lensforge.calibration.handeye import METHODS, solve_handeye
+from lensforge.calibration.robot import paper_scene, random_lens_poses, simulate_calibration
 
 COV_B = np.diag([1e-3] * 3 + [1e-5] * 3) ** 2  # ASSUMPTION: ~pose-estimation CRLB
 

@@ -37,9 +37,10 @@ _EXPORTS = {
     "sample_as_built": "lensforge.manufacturing.tolerances",
     "Tolerances": "lensforge.manufacturing.tolerances",
     "load_tolerances": "lensforge.manufacturing.tolerances",
-    # verification
-    "estimate_pose": "lensforge.verification.pose_estimation",
-    "solve_handeye": "lensforge.verification.handeye",
+    # calibration
+    "estimate_pose": "lensforge.calibration.pose_estimation",
+    "solve_handeye": "lensforge.calibration.handeye",
+    # verification (simulation of the calibration)
     "verify": "lensforge.verification.study",
     # errors
     "LensforgeError": "lensforge.errors",

@@ -2,8 +2,8 @@
 
 Every command that reports numbers has ``--json`` (stable keys on stdout; human
 text on stderr). A user's mistake prints one line ``error: ...`` and exits 2.
-Command groups live in ``lensforge/commands/*.py``; each module has
-``register(app)``.
+Each command is a top-level function in ``lensforge/commands/*.py``, registered
+below by name.
 """
 
 from __future__ import annotations
@@ -16,47 +16,37 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import importlib
 import sys
-from pathlib import Path
 
 import typer
 
+from .commands.demo import demo
+from .commands.design import compare, design, plot
+from .commands.estimate import estimate_study, scenario
+from .commands.evaluate import evaluate
+from .commands.export import export_cmd
+from .commands.handeye import handeye_cmd
+from .commands.study import budget_cmd, study_cmd
 from .errors import LensforgeError
-from .fileio import dumps_json
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Design, export and verify freeform lenses for Shack-Hartmann pose estimation.")
 
-DEFAULT_OUT = Path("exports")
-
-_COMMAND_MODULES = ["evaluate", "design", "export", "estimate", "handeye", "study", "demo"]
-
-
-def fail(message: str, code: int = 2):
-    """Print one line to stderr and exit non-zero."""
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(code)
-
-
-def emit_json(obj) -> None:
-    """Machine-readable output on stdout."""
-    typer.echo(dumps_json(obj))
-
-
-def info(message: str) -> None:
-    """Human text on stderr (so stdout stays machine-readable)."""
-    typer.echo(message, err=True)
-
-
-for _name in _COMMAND_MODULES:
-    try:
-        _mod = importlib.import_module(f"lensforge.commands.{_name}")
-    except ModuleNotFoundError as _e:
-        if _e.name != f"lensforge.commands.{_name}":
-            raise
-        continue
-    _mod.register(app)
+_COMMANDS = {  # command name -> function, in the order of ``lensforge --help``
+    "evaluate": evaluate,
+    "design": design,
+    "plot": plot,
+    "compare": compare,
+    "export": export_cmd,
+    "estimate-study": estimate_study,
+    "scenario": scenario,
+    "handeye": handeye_cmd,
+    "study": study_cmd,
+    "budget": budget_cmd,
+    "demo": demo,
+}
+for _name, _fn in _COMMANDS.items():
+    app.command(_name)(_fn)
 
 
 def _is_click_exception(e: BaseException, name: str) -> bool:

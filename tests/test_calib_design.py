@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from lensforge.errors import ConfigError
-from lensforge.verification.calib_design import (
+from lensforge.calibration.pose_design import (
     candidate_poses,
     design_poses,
     predicted_uncertainty,
 )
-from lensforge.verification.handeye import handeye_fisher
-from lensforge.verification.robot import (
+from lensforge.calibration.handeye import handeye_fisher
+from lensforge.calibration.robot import (
     lens_pose_matrix,
     paper_scene,
     random_lens_poses,

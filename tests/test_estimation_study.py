@@ -16,7 +16,7 @@ from lensforge.verification.estimation_study import (
     study_lens,
     study_to_dict,
 )
-from lensforge.verification.initial_poses import InitialPoseModel
+from lensforge.calibration.initial_poses import InitialPoseModel
 
 
 @pytest.fixture(scope="module")

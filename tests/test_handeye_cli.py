@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from lensforge.verification.robot import (
+from lensforge.calibration.robot import (
     paper_scene,
     random_lens_poses,
     simulate_calibration,

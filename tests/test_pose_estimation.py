@@ -12,12 +12,12 @@ import lensforge as lf
 from lensforge.errors import ConfigError, PoseRangeError, PupilError, RankError
 from lensforge.optics.sensitivity import metrics
 from lensforge.optics.shack_hartmann import ForwardModel
-from lensforge.verification.initial_poses import (
+from lensforge.calibration.initial_poses import (
     InitialPoseModel,
     prior_covariance,
     sample_true_poses,
 )
-from lensforge.verification.pose_estimation import (
+from lensforge.calibration.pose_estimation import (
     UnobservableWarning,
     estimate_pose,
     estimate_pose_model,

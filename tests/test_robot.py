@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from lensforge.errors import PoseRangeError
-from lensforge.verification.handeye import invert_poses
-from lensforge.verification.robot import (
+from lensforge.optics.pose import invert_poses
+from lensforge.calibration.robot import (
     PAPER_Z,
     RobotNoise,
     flange_pose,

@@ -11,7 +11,7 @@ import pytest
 
 import lensforge as lf
 from lensforge.errors import CalibrationError, ConfigError
-from lensforge.verification.robot import PAPER_Z, flange_pose
+from lensforge.calibration.robot import PAPER_Z, flange_pose
 from lensforge.verification.scenario import (
     ScenarioConfig,
     compare_pose_designs,
@@ -52,8 +52,8 @@ def test_plan_poses_lit_and_in_box(bench, ext):
 
 def test_noise_free_calibration_is_exact(bench, ext):
     """No sensor or robot noise, no CAD/grasp error: Z and X come back exactly."""
-    from lensforge.verification.initial_poses import InitialPoseModel
-    from lensforge.verification.robot import RobotNoise
+    from lensforge.calibration.initial_poses import InitialPoseModel
+    from lensforge.calibration.robot import RobotNoise
 
     quiet = bench.replace(noise={"slope_sigma_urad": 1e-6})
     sc = scenario_scene(quiet)

@@ -10,7 +10,7 @@ import pytest
 from lensforge.errors import ConfigError
 from lensforge.manufacturing.tolerances import Tolerances
 from lensforge.optics.shack_hartmann import ForwardModel
-from lensforge.verification.pose_estimation import estimate_pose_model
+from lensforge.calibration.pose_estimation import estimate_pose_model
 from lensforge.verification.study import StudyConfig, estimate_poses_batch, verify
 
 CFG = StudyConfig(n_poses=8, min_poses=4)
@@ -108,14 +108,10 @@ def test_cli_study_and_bad_tolerances(tmp_path):
 
 
 def test_self_calibration_recovers_index_and_z_from_exact_data():
-    from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
-    from lensforge.verification.robot import flange_pose
+    from lensforge.calibration.robot import flange_pose
+    from lensforge.optics.pose import matrix_to_pose, pose_to_matrix, transform_error
     from lensforge.verification.self_calibration import perturbed_lens, self_calibrate
-    from lensforge.verification.study import (
-        _transform_error,
-        make_context,
-        resolve_lens,
-    )
+    from lensforge.verification.study import make_context, resolve_lens
 
     lens, bench = resolve_lens("extended_polynomial")
     ctx = make_context(lens, bench, None, StudyConfig(n_poses=8))
@@ -127,5 +123,5 @@ def test_self_calibration_recovers_index_and_z_from_exact_data():
     Z0 = sc.Z @ pose_to_matrix(np.r_[0, 0.05, 0, 1e-3, 0, 0])
     r = self_calibrate(bench, lens, z, A, X0, Z0, sc.T_SO_nominal, names=("index",), prior_sigma={"index": 1.0})
     assert r.theta["index"] == pytest.approx(0.005, rel=1e-4)
-    rot, trans = _transform_error(sc.Z, r.Z)
+    rot, trans = transform_error(sc.Z, r.Z)
     assert rot < 1e-6 and trans < 1e-5

@@ -1,9 +1,22 @@
-"""Helpers shared by the CLI command modules."""
+"""Helpers shared by the CLI command modules: output channels and argument loading."""
 
 from __future__ import annotations
 
+import typer
+
+from ..fileio import dumps_json
 from ..optics.bench import Bench, load_bench
 from ..optics.lens import Lens, load_lens
+
+
+def emit_json(obj) -> None:
+    """Machine-readable output on stdout."""
+    typer.echo(dumps_json(obj))
+
+
+def info(message: str) -> None:
+    """Human text on stderr (so stdout stays machine-readable)."""
+    typer.echo(message, err=True)
 
 
 def load_lens_arg(arg: str) -> tuple[Lens, dict]:

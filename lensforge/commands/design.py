@@ -7,8 +7,18 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
+from rich.console import Console
 
+from ..design.compare import compare_rows, format_table
+from ..design.constraints import Constraints
+from ..design.design_file import load_design, save_design
+from ..design.optimize import optimize_design
+from ..design.robust import RobustSpec
 from ..errors import ConfigError
+from ..manufacturing.tolerances import load_tolerances
+from ..optics.lens import PAPER_LENSES, paper_lens
+from ..plots import design_plots
+from ._common import emit_json, info, load_bench_arg
 
 
 def _weights(text: str) -> tuple[float, float]:
@@ -22,117 +32,90 @@ def _weights(text: str) -> tuple[float, float]:
     return w
 
 
-def register(app: typer.Typer) -> None:
-    @app.command()
-    def design(
-        model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
-        method: str = typer.Option("nelder-mead", "--method", help="nelder-mead | pso | ga | cmaes"),
-        seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
-        criterion: str = typer.Option("J", "--criterion", help="J (paper) | D (D-optimal) | A (A-optimal)"),
-        weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
-        free: Optional[str] = typer.Option(None, "--free", help="preset (paper, full, zernike: base) or comma list of parameter names"),
-        bounds: Optional[str] = typer.Option(None, "--bounds", help="overrides 'name=lo:hi,...', e.g. thickness=4:8"),
-        max_evals: Optional[int] = typer.Option(None, "--max-evals", help="cost evaluations (default per method)"),
-        start: str = typer.Option("paper", "--start", help="paper (template vector if feasible) | random"),
-        starts: int = typer.Option(1, "--starts", help="Nelder-Mead multi-start count"),
-        particles: int = typer.Option(30, "--particles", help="PSO swarm size"),
-        population: Optional[int] = typer.Option(None, "--population", help="GA / CMA-ES population"),
-        min_thickness: float = typer.Option(1.0, "--min-thickness", help="minimum centre and edge thickness (mm)"),
-        range_mm: float = typer.Option(1.0, "--range-mm", help="working range, translation half-width (mm)"),
-        range_deg: float = typer.Option(1.0, "--range-deg", help="working range, rotation half-width (deg)"),
-        max_slope: float = typer.Option(50.0, "--max-slope", help="steepest surface slope in the clear aperture (deg; 90 = off)"),
-        time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
-        bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in)"),
-        robust: Optional[Path] = typer.Option(None, "--robust", help="tolerance TOML: minimise the expected criterion over as-built draws (tolerance-robust design)"),
-        robust_samples: int = typer.Option(8, "--robust-samples", help="as-built draws per candidate (with --robust)"),
-        robust_seed: int = typer.Option(0, "--robust-seed", help="seed of the as-built draws, common to all candidates (with --robust)"),
-        robust_statistic: str = typer.Option("mean", "--robust-statistic", help="mean | max | mean+std of the criterion over the draws (with --robust)"),
-        out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
-        no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-        json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-    ):
-        """Optimise a freeform lens and write its design file."""
-        from rich.console import Console
+def design(
+    model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
+    method: str = typer.Option("nelder-mead", "--method", help="nelder-mead | pso | ga | cmaes"),
+    seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
+    criterion: str = typer.Option("J", "--criterion", help="J (paper) | D (D-optimal) | A (A-optimal)"),
+    weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
+    free: Optional[str] = typer.Option(None, "--free", help="preset (paper, full, zernike: base) or comma list of parameter names"),
+    bounds: Optional[str] = typer.Option(None, "--bounds", help="overrides 'name=lo:hi,...', e.g. thickness=4:8"),
+    max_evals: Optional[int] = typer.Option(None, "--max-evals", help="cost evaluations (default per method)"),
+    start: str = typer.Option("paper", "--start", help="paper (template vector if feasible) | random"),
+    starts: int = typer.Option(1, "--starts", help="Nelder-Mead multi-start count"),
+    particles: int = typer.Option(30, "--particles", help="PSO swarm size"),
+    population: Optional[int] = typer.Option(None, "--population", help="GA / CMA-ES population"),
+    min_thickness: float = typer.Option(1.0, "--min-thickness", help="minimum centre and edge thickness (mm)"),
+    range_mm: float = typer.Option(1.0, "--range-mm", help="working range, translation half-width (mm)"),
+    range_deg: float = typer.Option(1.0, "--range-deg", help="working range, rotation half-width (deg)"),
+    max_slope: float = typer.Option(50.0, "--max-slope", help="steepest surface slope in the clear aperture (deg; 90 = off)"),
+    time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in)"),
+    robust: Optional[Path] = typer.Option(None, "--robust", help="tolerance TOML: minimise the expected criterion over as-built draws (tolerance-robust design)"),
+    robust_samples: int = typer.Option(8, "--robust-samples", help="as-built draws per candidate (with --robust)"),
+    robust_seed: int = typer.Option(0, "--robust-seed", help="seed of the as-built draws, common to all candidates (with --robust)"),
+    robust_statistic: str = typer.Option("mean", "--robust-statistic", help="mean | max | mean+std of the criterion over the draws (with --robust)"),
+    out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+):
+    """Optimise a freeform lens and write its design file."""
+    b = load_bench_arg(bench)
+    spec = None
+    if robust is not None:
 
-        from ..cli import emit_json, info
-        from ..design.compare import compare_rows, format_table
-        from ..design.constraints import Constraints
-        from ..design.design_file import save_design
-        from ..design.optimize import optimize_design
-        from ._common import load_bench_arg
+        spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
+                          statistic=robust_statistic)
+    cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
+                       range_rad=math.radians(range_deg), max_slope_deg=max_slope)
+    d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
+                        free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
+                        n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
+                        progress=not no_progress and not json_out, robust=spec)
+    path = save_design(d, out)
+    if json_out:
+        emit_json({"schema_version": 1, "design": str(path), "model": d.model, "method": d.method, "seed": d.seed,
+                   "criterion": d.criterion, "n_evals": d.n_evals, "wall_time_s": d.wall_time_s,
+                   "parameters": d.parameters, "metrics": d.metrics,
+                   "robust": None if d.robust is None else
+                   {k: d.robust[k] for k in ("n_samples", "seed", "statistic", "cost", "mean", "nominal", "n_failed")}})
+    else:
+        info(f"wrote {path}  ({d.n_evals} evaluations, {d.wall_time_s:.1f} s)")
+        if d.robust is not None:
+            r = d.robust
+            info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "
+                 f"(seed {r['seed']}, {r['n_failed']} unmeasurable); nominal {r['nominal']:.5g}")
+        Console(stderr=True, width=200).print(format_table(compare_rows([d], b, cons)))
 
-        b = load_bench_arg(bench)
-        spec = None
-        if robust is not None:
-            from ..design.robust import RobustSpec
-            from ..manufacturing.tolerances import load_tolerances
+def plot(
+    design_file: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
+    out: Path = typer.Option(Path("exports"), "-o", "--out", help="folder for the PNGs"),
+    json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
+):
+    """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
+    key = design_file.split(":", 1)[-1].lower().replace("-", "_")
+    if key in PAPER_LENSES:
+        paths = design_plots(paper_lens(key), out, stem=f"paper_{key}")
+    else:
+        d = load_design(design_file)
+        paths = design_plots(d, out, stem=Path(design_file).stem)
+    if json_out:
+        emit_json({"schema_version": 1, "files": [str(p) for p in paths]})
+    else:
+        for p in paths:
+            info(f"wrote {p}")
 
-            spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
-                              statistic=robust_statistic)
-        cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
-                           range_rad=math.radians(range_deg), max_slope_deg=max_slope)
-        d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
-                            free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
-                            n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
-                            progress=not no_progress and not json_out, robust=spec)
-        path = save_design(d, out)
-        if json_out:
-            emit_json({"schema_version": 1, "design": str(path), "model": d.model, "method": d.method, "seed": d.seed,
-                       "criterion": d.criterion, "n_evals": d.n_evals, "wall_time_s": d.wall_time_s,
-                       "parameters": d.parameters, "metrics": d.metrics,
-                       "robust": None if d.robust is None else
-                       {k: d.robust[k] for k in ("n_samples", "seed", "statistic", "cost", "mean", "nominal", "n_failed")}})
-        else:
-            info(f"wrote {path}  ({d.n_evals} evaluations, {d.wall_time_s:.1f} s)")
-            if d.robust is not None:
-                r = d.robust
-                info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "
-                     f"(seed {r['seed']}, {r['n_failed']} unmeasurable); nominal {r['nominal']:.5g}")
-            Console(stderr=True, width=200).print(format_table(compare_rows([d], b, cons)))
-
-    @app.command()
-    def plot(
-        design_file: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
-        out: Path = typer.Option(Path("exports"), "-o", "--out", help="folder for the PNGs"),
-        json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
-    ):
-        """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
-        from ..cli import emit_json, info
-        from ..design.design_file import load_design
-        from ..optics.lens import PAPER_LENSES, paper_lens
-        from ..plots import design_plots
-
-        key = design_file.split(":", 1)[-1].lower().replace("-", "_")
-        if key in PAPER_LENSES:
-            paths = design_plots(paper_lens(key), out, stem=f"paper_{key}")
-        else:
-            d = load_design(design_file)
-            paths = design_plots(d, out, stem=Path(design_file).stem)
-        if json_out:
-            emit_json({"schema_version": 1, "files": [str(p) for p in paths]})
-        else:
-            for p in paths:
-                info(f"wrote {p}")
-
-    @app.command()
-    def compare(
-        items: List[str] = typer.Argument(..., help="design JSON files and/or paper:NAME (spherical, polynomial, extended_polynomial, zernike)"),
-        bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in default)"),
-        range_mm: float = typer.Option(1.0, "--range-mm", help="working range for the feasibility column (mm)"),
-        range_deg: float = typer.Option(1.0, "--range-deg", help="working range for the feasibility column (deg)"),
-        json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
-    ):
-        """Table-1 analogue: all lenses evaluated on one bench."""
-        from rich.console import Console
-
-        from ..cli import emit_json
-        from ..design.compare import compare_rows, format_table
-        from ..design.constraints import Constraints
-        from ._common import load_bench_arg
-
-        b = load_bench_arg(bench)
-        rows = compare_rows(items, b, Constraints(range_mm=range_mm, range_rad=math.radians(range_deg)))
-        if json_out:
-            emit_json({"schema_version": 1, "rows": rows})
-        else:
-            Console(stderr=True, width=220).print(format_table(rows))
+def compare(
+    items: List[str] = typer.Argument(..., help="design JSON files and/or paper:NAME (spherical, polynomial, extended_polynomial, zernike)"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in default)"),
+    range_mm: float = typer.Option(1.0, "--range-mm", help="working range for the feasibility column (mm)"),
+    range_deg: float = typer.Option(1.0, "--range-deg", help="working range for the feasibility column (deg)"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
+):
+    """Table-1 analogue: all lenses evaluated on one bench."""
+    b = load_bench_arg(bench)
+    rows = compare_rows(items, b, Constraints(range_mm=range_mm, range_rad=math.radians(range_deg)))
+    if json_out:
+        emit_json({"schema_version": 1, "rows": rows})
+    else:
+        Console(stderr=True, width=220).print(format_table(rows))

@@ -3,92 +3,83 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 
+from ..errors import ConfigError
+from ..fileio import write_atomic
+from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
+from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
+from ._common import emit_json, info, load_bench_arg, load_lens_arg
 
-def register(app: typer.Typer) -> None:
-    @app.command("estimate-study")
-    def estimate_study(
-        lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
-        trials: int = typer.Option(100, "--trials", help="estimates per lens"),
-        method: str = typer.Option("lm", "--method", help="lm (least squares, default) or ukf (the paper's baseline)"),
-        ukf_repeats: int = typer.Option(12, "--ukf-repeats", help="ukf: updates on the same measurement (paper: 12)"),
-        seed: int = typer.Option(0, "--seed", help="random seed (SeedSequence; same trials for every lens)"),
-        bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
-        out: Path = typer.Option(Path("exports/estimate"), "-o", "--out", help="output folder (JSON, per-trial CSV, box plot PNG)"),
-        json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
-    ):
-        """Estimate each lens's pose from noisy measurements TRIALS times; report error
-        statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
-        from ..cli import emit_json, info
-        from ..errors import ConfigError
-        from ..verification.estimation_study import format_table, save_study, study_to_dict, study_lens
-        from ._common import load_bench_arg, load_lens_arg
 
-        # ConfigError, not cli.fail: under main()'s standalone_mode=False a typer.Exit
-        # from fail() comes back as a return value and the exit status is lost
-        if method not in ("lm", "ukf"):
-            raise ConfigError(f"--method: {method!r} is not lm or ukf")
-        if trials < 1 or ukf_repeats < 1:
-            raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
-        opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
-        results = []
-        for arg in lenses:
-            lens, data = load_lens_arg(arg)
-            b = load_bench_arg(bench, data)
-            name = Path(arg).stem if Path(arg).suffix else arg
-            info(f"{name}: {trials} estimates ({method}) ...")
-            results.append(study_lens(b, lens, name, trials, method, seed, **opts))
-        meta = {"method": method, "trials": trials, "seed": seed,
-                **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
-        paths = save_study(results, out, **meta)
-        if json_out:
-            emit_json({**study_to_dict(results, **meta), "files": {k: str(v) for k, v in paths.items()}})
-        else:
-            info(format_table(results))
-            info("files: " + ", ".join(str(p) for p in paths.values()))
-
-    @app.command("scenario")
-    def scenario(
-        lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
-        design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
-        runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
-        method: str = typer.Option("lm", "--method", help="pose estimator: lm or ukf"),
-        seed: int = typer.Option(0, "--seed", help="random seed"),
-        bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
-        out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
-        json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
-    ):
-        """The paper's calibration procedure in simulation: 12 convergence poses, 12
-        calibration poses, lens poses estimated from noisy measurements, hand-eye
-        solved with the estimator covariances; Z error vs its predicted bound."""
-        import json
-
-        from ..cli import emit_json, info
-        from ..errors import ConfigError
-        from ..fileio import write_atomic
-        from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
-        from ._common import load_bench_arg, load_lens_arg
-
-        if design not in ("random", "oed", "both"):
-            raise ConfigError(f"--poses: {design!r} is not random, oed or both")
-        if method not in ("lm", "ukf"):
-            raise ConfigError(f"--method: {method!r} is not lm or ukf")
-        if runs < 1:
-            raise ConfigError(f"--runs: must be >= 1, got {runs}")
-        lens_obj, data = load_lens_arg(lens)
+def estimate_study(
+    lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
+    trials: int = typer.Option(100, "--trials", help="estimates per lens"),
+    method: str = typer.Option("lm", "--method", help="lm (least squares, default) or ukf (the paper's baseline)"),
+    ukf_repeats: int = typer.Option(12, "--ukf-repeats", help="ukf: updates on the same measurement (paper: 12)"),
+    seed: int = typer.Option(0, "--seed", help="random seed (SeedSequence; same trials for every lens)"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
+    out: Path = typer.Option(Path("exports/estimate"), "-o", "--out", help="output folder (JSON, per-trial CSV, box plot PNG)"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+):
+    """Estimate each lens's pose from noisy measurements TRIALS times; report error
+    statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
+    # ConfigError, not typer.Exit: under main()'s standalone_mode=False a typer.Exit
+    # comes back as a return value and the exit status is lost
+    if method not in ("lm", "ukf"):
+        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if trials < 1 or ukf_repeats < 1:
+        raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
+    opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
+    results = []
+    for arg in lenses:
+        lens, data = load_lens_arg(arg)
         b = load_bench_arg(bench, data)
-        cfg = ScenarioConfig(estimator=method)
-        designs = ("random", "oed") if design == "both" else (design,)
-        info(f"scenario: {runs} calibrations x {', '.join(designs)} poses ...")
-        rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed)
-        rep = {"schema_version": 1, "lens": lens, **rep}
-        path = write_atomic(Path(out) / "scenario.json", json.dumps(rep, indent=2, allow_nan=False))
-        if json_out:
-            emit_json({**rep, "files": {"json": str(path)}})
-        else:
-            info(format_comparison(rep))
-            info(f"files: {path}")
+        name = Path(arg).stem if Path(arg).suffix else arg
+        info(f"{name}: {trials} estimates ({method}) ...")
+        results.append(study_lens(b, lens, name, trials, method, seed, **opts))
+    meta = {"method": method, "trials": trials, "seed": seed,
+            **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
+    paths = save_study(results, out, **meta)
+    if json_out:
+        emit_json({**study_to_dict(results, **meta), "files": {k: str(v) for k, v in paths.items()}})
+    else:
+        info(format_table(results))
+        info("files: " + ", ".join(str(p) for p in paths.values()))
+
+def scenario(
+    lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
+    design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
+    runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: lm or ukf"),
+    seed: int = typer.Option(0, "--seed", help="random seed"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
+    out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+):
+    """The paper's calibration procedure in simulation: 12 convergence poses, 12
+    calibration poses, lens poses estimated from noisy measurements, hand-eye
+    solved with the estimator covariances; Z error vs its predicted bound."""
+    if design not in ("random", "oed", "both"):
+        raise ConfigError(f"--poses: {design!r} is not random, oed or both")
+    if method not in ("lm", "ukf"):
+        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if runs < 1:
+        raise ConfigError(f"--runs: must be >= 1, got {runs}")
+    lens_obj, data = load_lens_arg(lens)
+    b = load_bench_arg(bench, data)
+    cfg = ScenarioConfig(estimator=method)
+    designs = ("random", "oed") if design == "both" else (design,)
+    info(f"scenario: {runs} calibrations x {', '.join(designs)} poses ...")
+    rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed)
+    rep = {"schema_version": 1, "lens": lens, **rep}
+    path = write_atomic(Path(out) / "scenario.json", json.dumps(rep, indent=2, allow_nan=False))
+    if json_out:
+        emit_json({**rep, "files": {"json": str(path)}})
+    else:
+        info(format_comparison(rep))
+        info(f"files: {path}")

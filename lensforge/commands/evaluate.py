@@ -5,11 +5,13 @@ from __future__ import annotations
 from typing import List, Optional
 
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
-from ._common import load_bench_arg, load_lens_arg
+from ._common import emit_json, load_bench_arg, load_lens_arg
 
 
 _NO_METRICS = {"rank": None, "kappa": None, "sigma_min": None, "J": None,
@@ -41,8 +43,6 @@ def _range_text(sr: dict | None) -> str:
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
     """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF)."""
-    from rich.table import Table
-
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 
@@ -57,20 +57,14 @@ def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, n
     return t
 
 
-def register(app: typer.Typer) -> None:
-    @app.command()
-    def evaluate(
-        lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
-        bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
-        json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
-    ):
-        """Rank, condition number, sigma_min, cost J and Cramer-Rao bound of each lens."""
-        from rich.console import Console
-
-        from ..cli import emit_json
-
-        rows = evaluate_lenses(lenses, bench)
-        if json_out:
-            emit_json({"schema_version": 1, "lenses": rows})
-        else:
-            Console(stderr=True, width=160).print(metrics_table(rows))
+def evaluate(
+    lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+):
+    """Rank, condition number, sigma_min, cost J and Cramer-Rao bound of each lens."""
+    rows = evaluate_lenses(lenses, bench)
+    if json_out:
+        emit_json({"schema_version": 1, "lenses": rows})
+    else:
+        Console(stderr=True, width=160).print(metrics_table(rows))

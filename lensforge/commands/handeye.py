@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import typer
 
+from ..calibration.handeye import solve_handeye
 from ..errors import ConfigError
 from ..fileio import read_json
+from ._common import emit_json, info
 
 
 def load_poses(path: str | Path) -> dict:
@@ -70,35 +73,29 @@ def load_poses(path: str | Path) -> dict:
     return out
 
 
-def register(app: typer.Typer) -> None:
-    @app.command("handeye")
-    def handeye_cmd(
-        poses: Path = typer.Argument(..., help="POSES.json: {\"units\": \"mm\", \"A\": [4x4...], \"B\": [4x4...]}"),
-        method: str = typer.Option("ml", "--method", help="ml | shah | li"),
-        json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
-        allow_degenerate: bool = typer.Option(
-            False, "--allow-degenerate",
-            help="report degenerate motion as observable=false instead of failing"),
-    ):
-        """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
-        from ..cli import emit_json, info
-        from ..verification.handeye import solve_handeye
-        import warnings
-
-        kw = load_poses(poses)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            res = solve_handeye(kw["A"], kw["B"], method=method, sigma=kw["sigma"], cov_B=kw["cov_B"],
-                                on_degenerate="warn" if allow_degenerate else "raise")
-        sz = res.std_Z
-        info(f"hand-eye ({res.method}, {res.residuals.shape[0]} poses, noise model {res.noise_model}): "
-             f"chi2/dof = {res.chi2_dof:.3g}")
-        info(f"  Z translation (mm): {np.array2string(res.Z[:3, 3], precision=4)}  "
-             f"1-sigma {np.array2string(sz[:3] * 1e3, precision=2)} um")
-        info(f"  Z rotation 1-sigma: {np.array2string(sz[3:] * 1e3, precision=3)} mrad")
-        info(f"  X translation (mm): {np.array2string(res.X[:3, 3], precision=4)}  "
-             f"1-sigma {np.array2string(res.std_X[:3] * 1e3, precision=2)} um")
-        for w in res.warnings:
-            info(f"warning: {w}")
-        if json_out:
-            emit_json(res.to_dict())
+def handeye_cmd(
+    poses: Path = typer.Argument(..., help="POSES.json: {\"units\": \"mm\", \"A\": [4x4...], \"B\": [4x4...]}"),
+    method: str = typer.Option("ml", "--method", help="ml | shah | li"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
+    allow_degenerate: bool = typer.Option(
+        False, "--allow-degenerate",
+        help="report degenerate motion as observable=false instead of failing"),
+):
+    """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
+    kw = load_poses(poses)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = solve_handeye(kw["A"], kw["B"], method=method, sigma=kw["sigma"], cov_B=kw["cov_B"],
+                            on_degenerate="warn" if allow_degenerate else "raise")
+    sz = res.std_Z
+    info(f"hand-eye ({res.method}, {res.residuals.shape[0]} poses, noise model {res.noise_model}): "
+         f"chi2/dof = {res.chi2_dof:.3g}")
+    info(f"  Z translation (mm): {np.array2string(res.Z[:3, 3], precision=4)}  "
+         f"1-sigma {np.array2string(sz[:3] * 1e3, precision=2)} um")
+    info(f"  Z rotation 1-sigma: {np.array2string(sz[3:] * 1e3, precision=3)} mrad")
+    info(f"  X translation (mm): {np.array2string(res.X[:3, 3], precision=4)}  "
+         f"1-sigma {np.array2string(res.std_X[:3] * 1e3, precision=2)} um")
+    for w in res.warnings:
+        info(f"warning: {w}")
+    if json_out:
+        emit_json(res.to_dict())

@@ -7,10 +7,17 @@ from pathlib import Path
 
 import typer
 
+from ..fileio import dumps_json, write_atomic
+from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+from ..optics.bench import load_bench
+from ..verification.budget import sensitivity_analysis, tolerance_budget
+from ..verification.runner import dask_client
+from ..verification.study import StudyConfig, verify
+from ..verification.study_plots import plot_budget, plot_error_histograms, plot_sensitivity
+from ._common import emit_json, info
+
 
 def _tolerances(path):
-    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
-
     if path is None:
         return load_tolerances(DEFAULT_TOLERANCES_FILE) if Path(DEFAULT_TOLERANCES_FILE).exists() else Tolerances()
     return load_tolerances(path)
@@ -21,122 +28,105 @@ def _fmt(v, unit, digits=3):
 
 
 def _write_json(path: Path, obj) -> None:
-    from ..fileio import dumps_json, write_atomic
-
     write_atomic(path, dumps_json(obj))
 
 
-def register(app: typer.Typer) -> None:
-    @app.command("study")
-    def study_cmd(
-        design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
-        tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
-        lenses: int = typer.Option(1000, "--lenses", "-n", help="number of as-built lenses"),
-        poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
-        seed: int = typer.Option(0, "--seed", help="study seed (trial i uses SeedSequence(seed) child i)"),
-        workers: int = typer.Option(None, "--workers", help="local Dask worker processes (0 = in this process; "
-                                                            "default: all cores)"),
-        scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
-        resume: bool = typer.Option(False, "--resume", help="continue the study stored in the output folder"),
-        self_calibrate: bool = typer.Option(False, "--self-calibrate", help="also estimate as-built thickness, "
-                                                                            "index and form with the poses"),
-        bench: Path = typer.Option(None, "--bench", help="bench TOML (default: the design's, else built-in)"),
-        target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
-        target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
-        out: Path = typer.Option(Path("exports/study"), "--out", "-o", help="output folder"),
-        json_out: bool = typer.Option(False, "--json", help="summary on stdout"),
-        no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-    ):
-        """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
-        from ..cli import emit_json, info
-        from ..optics.bench import load_bench
-        from ..verification.study import StudyConfig, verify
-        from ..verification.study_plots import plot_error_histograms
+def study_cmd(
+    design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
+    tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
+    lenses: int = typer.Option(1000, "--lenses", "-n", help="number of as-built lenses"),
+    poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
+    seed: int = typer.Option(0, "--seed", help="study seed (trial i uses SeedSequence(seed) child i)"),
+    workers: int = typer.Option(None, "--workers", help="local Dask worker processes (0 = in this process; "
+                                                        "default: all cores)"),
+    scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
+    resume: bool = typer.Option(False, "--resume", help="continue the study stored in the output folder"),
+    self_calibrate: bool = typer.Option(False, "--self-calibrate", help="also estimate as-built thickness, "
+                                                                        "index and form with the poses"),
+    bench: Path = typer.Option(None, "--bench", help="bench TOML (default: the design's, else built-in)"),
+    target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
+    target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
+    out: Path = typer.Option(Path("exports/study"), "--out", "-o", help="output folder"),
+    json_out: bool = typer.Option(False, "--json", help="summary on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
+):
+    """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
+    tol = _tolerances(tolerances)
+    cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg)
+    b = load_bench(bench) if bench else None
+    out.mkdir(parents=True, exist_ok=True)
+    res = verify(design, tol, lenses, seed, b, config=cfg, workers=workers, scheduler=scheduler,
+                 store=out / "store.sqlite", resume=resume, progress=not (no_progress or json_out))
+    d = res.to_dict()
+    d["design"] = str(design)
+    d["tolerances"] = res.config["tolerances"]
+    _write_json(out / "summary.json", d)
+    plot_error_histograms(res.rot_err_deg, res.trans_err_mm, out / "errors.png", target_deg, target_mm,
+                          title=f"{design}: Z error over {res.n_lenses} as-built lenses")
+    s = res.summary
+    info(f"{s['n_ok']} of {s['n_lenses']} calibrations succeeded ({res.stats.n_resumed} resumed, "
+         f"{res.stats.wall_s:.1f} s, {res.stats.mode})")
+    for key, unit in (("rotation_deg", "deg"), ("translation_mm", "mm")):
+        v = s[key]
+        q = f"p{s['percentile']:g}"
+        info(f"  Z {key.split('_')[0]}: median {_fmt(v['median'], unit)}, {q} {_fmt(v[q], unit)}, "
+             f"max {_fmt(v['max'], unit)}")
+    info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
+         f"{'met' if s['meets_target'] else 'NOT met'}")
+    if s["failures"]:
+        info(f"  failures: {s['failures']}")
+    info(f"wrote {out / 'store.sqlite'}, {out / 'summary.json'}, {out / 'errors.png'}")
+    if json_out:
+        emit_json(d)
 
-        tol = _tolerances(tolerances)
-        cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg)
-        b = load_bench(bench) if bench else None
-        out.mkdir(parents=True, exist_ok=True)
-        res = verify(design, tol, lenses, seed, b, config=cfg, workers=workers, scheduler=scheduler,
-                     store=out / "store.sqlite", resume=resume, progress=not (no_progress or json_out))
-        d = res.to_dict()
-        d["design"] = str(design)
-        d["tolerances"] = res.config["tolerances"]
-        _write_json(out / "summary.json", d)
-        plot_error_histograms(res.rot_err_deg, res.trans_err_mm, out / "errors.png", target_deg, target_mm,
-                              title=f"{design}: Z error over {res.n_lenses} as-built lenses")
-        s = res.summary
-        info(f"{s['n_ok']} of {s['n_lenses']} calibrations succeeded ({res.stats.n_resumed} resumed, "
-             f"{res.stats.wall_s:.1f} s, {res.stats.mode})")
-        for key, unit in (("rotation_deg", "deg"), ("translation_mm", "mm")):
-            v = s[key]
-            q = f"p{s['percentile']:g}"
-            info(f"  Z {key.split('_')[0]}: median {_fmt(v['median'], unit)}, {q} {_fmt(v[q], unit)}, "
-                 f"max {_fmt(v['max'], unit)}")
-        info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
-             f"{'met' if s['meets_target'] else 'NOT met'}")
-        if s["failures"]:
-            info(f"  failures: {s['failures']}")
-        info(f"wrote {out / 'store.sqlite'}, {out / 'summary.json'}, {out / 'errors.png'}")
-        if json_out:
-            emit_json(d)
-
-    @app.command("budget")
-    def budget_cmd(
-        design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
-        tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
-        target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
-        target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
-        relative: float = typer.Option(None, "--relative-to-noise",
-                                       help="target = this multiple of the noise-only errors instead"),
-        lenses: int = typer.Option(64, "--lenses", "-n", help="as-built lenses per evaluation"),
-        poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
-        seed: int = typer.Option(0, "--seed", help="seed (the same trials for every evaluation)"),
-        workers: int = typer.Option(None, "--workers", help="local Dask workers (0 = in this process)"),
-        scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
-        bench: Path = typer.Option(None, "--bench", help="bench TOML"),
-        out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
-        json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
-    ):
-        """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
-        from ..cli import emit_json, info
-        from ..optics.bench import load_bench
-        from ..verification.budget import sensitivity_analysis, tolerance_budget
-        from ..verification.runner import dask_client
-        from ..verification.study import StudyConfig
-        from ..verification.study_plots import plot_budget, plot_sensitivity
-
-        tol = _tolerances(tolerances)
-        cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg)
-        b = load_bench(bench) if bench else None
-        out.mkdir(parents=True, exist_ok=True)
-        with dask_client(workers, scheduler) as cl:
-            kw = dict(config=cfg, client=cl, workers=0)
-            bud = tolerance_budget(design, tol, target_mm=target_mm, target_deg=target_deg, n_lenses=lenses,
-                                   seed=seed, bench=b, relative_to_noise=relative, **kw)
-            cfg2 = StudyConfig(n_poses=poses, target_mm=bud.target_mm, target_deg=bud.target_deg)
-            sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0)
-        d = {"schema_version": 1, "design": str(design), **bud.to_dict(),
-             "sensitivity": [r.to_dict() for r in sens], "tolerances": tol.to_dict()}
-        _write_json(out / "budget.json", d)
-        plot_sensitivity([r.to_dict() for r in sens], out / "sensitivity.png",
-                         title=f"{design}: p95 Z error per tolerance ({lenses} lenses)")
-        rows = []
-        for r in bud.rows:
-            rd = r.to_dict()
-            rd["max_value_label"] = ("n/a" if r.max_value is None else f"<= {r.max_value:.3g} {r.unit}")
-            rows.append(rd)
-        plot_budget(rows, out / "budget.png", title=f"{design}: tolerance budget "
-                    f"({bud.target_mm:.3g} mm, {bud.target_deg:.3g} deg at p{bud.percentile:g})")
-        info(f"budget for {design}: target {bud.target_mm:.3g} mm and {bud.target_deg:.3g} deg at "
-             f"p{bud.percentile:g}; noise-only ratio {bud.noise_ratio if bud.noise_ratio is None else round(bud.noise_ratio, 3)}")
-        info(f"  {'component':<10} {'given':>12} {'max scale':>10} {'max value':>12}  unit / status")
-        for r in bud.rows:
-            ms = "-" if r.max_scale is None else f"{r.max_scale:.3g}"
-            mv = "-" if r.max_value is None else f"{r.max_value:.3g}"
-            gv = "-" if r.given_value is None else f"{r.given_value:.3g}"
-            info(f"  {r.component:<10} {gv:>12} {ms:>10} {mv:>12}  {r.unit} / {r.status}")
-        info(f"  dominant: {bud.dominant}")
-        info(f"wrote {out / 'budget.json'}, {out / 'budget.png'}, {out / 'sensitivity.png'}")
-        if json_out:
-            emit_json(d)
+def budget_cmd(
+    design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
+    tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
+    target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
+    target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
+    relative: float = typer.Option(None, "--relative-to-noise",
+                                   help="target = this multiple of the noise-only errors instead"),
+    lenses: int = typer.Option(64, "--lenses", "-n", help="as-built lenses per evaluation"),
+    poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
+    seed: int = typer.Option(0, "--seed", help="seed (the same trials for every evaluation)"),
+    workers: int = typer.Option(None, "--workers", help="local Dask workers (0 = in this process)"),
+    scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
+    bench: Path = typer.Option(None, "--bench", help="bench TOML"),
+    out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
+    json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
+):
+    """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
+    tol = _tolerances(tolerances)
+    cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg)
+    b = load_bench(bench) if bench else None
+    out.mkdir(parents=True, exist_ok=True)
+    with dask_client(workers, scheduler) as cl:
+        kw = dict(config=cfg, client=cl, workers=0)
+        bud = tolerance_budget(design, tol, target_mm=target_mm, target_deg=target_deg, n_lenses=lenses,
+                               seed=seed, bench=b, relative_to_noise=relative, **kw)
+        cfg2 = StudyConfig(n_poses=poses, target_mm=bud.target_mm, target_deg=bud.target_deg)
+        sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0)
+    d = {"schema_version": 1, "design": str(design), **bud.to_dict(),
+         "sensitivity": [r.to_dict() for r in sens], "tolerances": tol.to_dict()}
+    _write_json(out / "budget.json", d)
+    plot_sensitivity([r.to_dict() for r in sens], out / "sensitivity.png",
+                     title=f"{design}: p95 Z error per tolerance ({lenses} lenses)")
+    rows = []
+    for r in bud.rows:
+        rd = r.to_dict()
+        rd["max_value_label"] = ("n/a" if r.max_value is None else f"<= {r.max_value:.3g} {r.unit}")
+        rows.append(rd)
+    plot_budget(rows, out / "budget.png", title=f"{design}: tolerance budget "
+                f"({bud.target_mm:.3g} mm, {bud.target_deg:.3g} deg at p{bud.percentile:g})")
+    info(f"budget for {design}: target {bud.target_mm:.3g} mm and {bud.target_deg:.3g} deg at "
+         f"p{bud.percentile:g}; noise-only ratio {bud.noise_ratio if bud.noise_ratio is None else round(bud.noise_ratio, 3)}")
+    info(f"  {'component':<10} {'given':>12} {'max scale':>10} {'max value':>12}  unit / status")
+    for r in bud.rows:
+        ms = "-" if r.max_scale is None else f"{r.max_scale:.3g}"
+        mv = "-" if r.max_value is None else f"{r.max_value:.3g}"
+        gv = "-" if r.given_value is None else f"{r.given_value:.3g}"
+        info(f"  {r.component:<10} {gv:>12} {ms:>10} {mv:>12}  {r.unit} / {r.status}")
+    info(f"  dominant: {bud.dominant}")
+    info(f"wrote {out / 'budget.json'}, {out / 'budget.png'}, {out / 'sensitivity.png'}")
+    if json_out:
+        emit_json(d)

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError, DesignError, LensforgeError
 from ..optics.bench import Bench
-from ..optics.lens import Lens, _polar_grid
+from ..optics.lens import Lens, polar_grid
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, TIR, trace_rays
 
@@ -174,7 +174,7 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
             return Feasibility(False, (Violation("geometry", float("nan"), 0.0, str(e)),), 1e3)
     # thickness: centre and the rest of the edge diameter (polar grid incl. the rim)
     t_c = float(lens.thickness_at(0.0, 0.0))
-    x, y = _polar_grid(0.5 * lens.edge_diameter)  # the grid Lens.min_thickness uses
+    x, y = polar_grid(0.5 * lens.edge_diameter)  # the grid Lens.min_thickness uses
     t_all = lens.thickness_at(x, y)
     if not np.all(np.isfinite(t_all)):
         return Feasibility(False, (Violation("geometry", float("nan"), 0.0,
@@ -193,7 +193,7 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                             "raise the thickness or reduce the surface sags"))
         pen += (c.min_edge_mm - t_min) / max(c.min_edge_mm, 1e-3)
     if c.max_slope_deg < 90.0:
-        xa, ya = _polar_grid(0.5 * lens.aperture)
+        xa, ya = polar_grid(0.5 * lens.aperture)
         limit = math.tan(math.radians(c.max_slope_deg))
         for side in ("front", "back"):
             gx, gy = getattr(lens, side).gradient(xa, ya)

@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import ConfigError, LensforgeError, LensGeometryError
 from ..manufacturing.tolerances import Tolerances, load_tolerances, sample_as_built
 from ..optics.bench import Bench
-from ..optics.lens import Lens, _polar_grid
+from ..optics.lens import Lens, polar_grid
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import Metrics, metrics_from_S, sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
@@ -131,7 +131,7 @@ class RobustValue:
 
 # --- one lens ------------------------------------------------------------------
 
-_CHECK_GRID = _polar_grid(1.0, n_r=9, n_phi=24)  # coarse unit-disc grid (incl. centre and rim)
+_CHECK_GRID = polar_grid(1.0, n_r=9, n_phi=24)  # coarse unit-disc grid (incl. centre and rim)
 
 
 def cheap_check(lens: Lens) -> Lens:

@@ -21,7 +21,8 @@ from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag
 __all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens"]
 
 
-def _polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
+def polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
+    """Sample points (x, y) of a disk of the given radius, uniform in area along r."""
     r = radius * np.sqrt(np.linspace(0.0, 1.0, n_r))
     phi = np.linspace(0.0, 2 * np.pi, n_phi, endpoint=False)
     rr, pp = np.meshgrid(r, phi, indexing="ij")
@@ -87,7 +88,7 @@ class Lens:
     @property
     def min_thickness(self) -> float:
         """Minimum axial thickness over the whole edge diameter (mm)."""
-        x, y = _polar_grid(0.5 * self.edge_diameter)
+        x, y = polar_grid(0.5 * self.edge_diameter)
         return float(np.nanmin(self.thickness_at(x, y)))
 
     def validate(self) -> "Lens":
@@ -100,7 +101,7 @@ class Lens:
             raise LensGeometryError(
                 f"lens.edge_diameter: {self.edge_diameter} mm is smaller than the clear aperture {self.aperture} mm"
             )
-        x, y = _polar_grid(0.5 * self.edge_diameter)
+        x, y = polar_grid(0.5 * self.edge_diameter)
         for side in ("front", "back"):
             if np.any(~np.isfinite(getattr(self, side).sag(x, y))):
                 raise LensGeometryError(

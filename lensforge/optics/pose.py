@@ -9,8 +9,11 @@ iteration, where scipy's per-call overhead dominated.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-__all__ = ["pose_to_matrix", "matrix_to_pose", "rotations", "rotvecs", "skew", "DOF_NAMES", "DOF_UNITS"]
+__all__ = ["pose_to_matrix", "matrix_to_pose", "rotations", "rotvecs", "skew", "invert_poses", "adjoint",
+           "right_jacobian_so3", "pose_vector_cov_to_right", "rotation_angle_deg", "transform_error",
+           "DOF_NAMES", "DOF_UNITS"]
 
 DOF_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 DOF_UNITS = ("mm", "mm", "mm", "rad", "rad", "rad")
@@ -100,3 +103,64 @@ def matrix_to_pose(T) -> np.ndarray:
     """Pose vector(s) (..., 6) of 4x4 transform(s)."""
     T = np.asarray(T, dtype=float)
     return np.concatenate([T[..., :3, 3], rotvecs(T[..., :3, :3])], axis=-1)
+
+
+def invert_poses(T) -> np.ndarray:
+    """Inverse(s) of rigid transform(s) (..., 4, 4), exact for orthonormal R."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def adjoint(T) -> np.ndarray:
+    """6x6 adjoint(s) of T for xi = (rho, omega): T P(xi) T^-1 = P(Ad_T xi) to first order."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Ad = np.zeros(T.shape[:-2] + (6, 6))
+    Ad[..., :3, :3] = R
+    Ad[..., :3, 3:] = skew(t) @ R
+    Ad[..., 3:, 3:] = R
+    return Ad
+
+
+def right_jacobian_so3(r) -> np.ndarray:
+    """Right Jacobian J_r(r) of SO(3): R(r + dr) = R(r) Exp(J_r(r) dr) to first order."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r)
+    K = skew(r)
+    if th < 1e-8:
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return (np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K)
+
+
+def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:
+    """Covariance of a pose vector x = (t, r) (as returned by the pose estimator, where
+    T = T_nominal P(x)) converted to the right perturbation of T used by hand-eye (T P(xi)).
+
+    P(x + dx) = P(x) P(xi) with xi = (R(r)^T dt, J_r(r) dr) to first order.
+    """
+    x = np.asarray(x, dtype=float)
+    M = np.zeros((6, 6))
+    M[:3, :3] = rotations(x[3:]).T
+    M[3:, 3:] = right_jacobian_so3(x[3:])
+    return M @ np.asarray(cov_x, dtype=float) @ M.T
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Rotation angle (deg) of a rotation matrix, accurate for small angles."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))) if c < 0.999 else \
+        float(np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec())))
+
+
+def transform_error(T_true: np.ndarray, T_est: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, translation mm) of T_true^-1 T_est."""
+    E = np.linalg.solve(T_true, T_est)
+    return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import RankError
 from .bench import Bench
 from .lens import Lens
 from .pose import DOF_NAMES
@@ -96,11 +95,6 @@ class Metrics:
     null_space: np.ndarray
     weights: tuple = (1.0, 1.0)
 
-    @property
-    def fisher(self) -> np.ndarray:
-        """Fisher information S^T R^-1 S (pose units mm, rad)."""
-        return self.S.T @ np.linalg.solve(self.R, self.S)
-
     def to_dict(self) -> dict:
         """JSON-ready summary (inf -> None) with units in the keys."""
         def f(v):
@@ -160,16 +154,3 @@ def metrics(bench: Bench, lens: Lens, pose=None, weights=(1.0, 1.0)) -> Metrics:
     model = ForwardModel(bench, lens)
     S, z0, _ = sensitivity_from_model(model, pose)
     return metrics_from_S(S, model.noise_cov, bench, z0, weights)
-
-
-def require_full_rank(m: Metrics) -> None:
-    """Raise RankError naming the unobservable pose direction(s)."""
-    if m.rank < m.S.shape[1]:
-        names = []
-        for v in m.null_space.T:
-            i = int(np.argmax(np.abs(v)))
-            names.append(DOF_NAMES[i])
-        raise RankError(
-            f"sensitivity matrix has rank {m.rank} < 6: pose direction(s) {', '.join(names)} unobservable; "
-            "break the lens's rotational symmetry (freeform terms)"
-        )

@@ -110,10 +110,6 @@ class CanonicalSurface:
             gy = gy * f
         return z, gx, gy
 
-    @property
-    def degree(self) -> int:
-        return self.poly.shape[0] - 1
-
 
 def _as_coeffs(name: str, value, length: int | None = None) -> np.ndarray:
     arr = np.atleast_1d(np.asarray(value, dtype=float))

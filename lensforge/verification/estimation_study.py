@@ -37,8 +37,8 @@ from ..optics.lens import Lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
-from .initial_poses import InitialPoseModel, prior_covariance
-from .pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
+from ..calibration.initial_poses import InitialPoseModel, prior_covariance
+from ..calibration.pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
 
 __all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
            "SCHEMA_VERSION"]

@@ -43,14 +43,14 @@ import numpy as np
 from ..errors import CalibrationError, ConfigError, LensforgeError, PupilError, TraceError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
-from ..optics.pose import matrix_to_pose, pose_to_matrix
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
-from .calib_design import candidate_poses, design_poses, predicted_uncertainty
-from .handeye import invert_poses, pose_vector_cov_to_right, solve_handeye
-from .initial_poses import InitialPoseModel, prior_covariance
-from .pose_estimation import UnobservableWarning, estimate_pose_model
-from .robot import PAPER_Z, Scene, flange_pose, paper_scene, random_lens_poses
+from ..calibration.handeye import solve_handeye
+from ..calibration.initial_poses import InitialPoseModel, prior_covariance
+from ..calibration.pose_design import candidate_poses, design_poses, predicted_uncertainty
+from ..calibration.pose_estimation import UnobservableWarning, estimate_pose_model
+from ..calibration.robot import PAPER_Z, Scene, flange_pose, paper_scene, random_lens_poses
 
 __all__ = ["scenario_scene", "ScenarioConfig", "CalibrationRun", "run_calibration", "plan_poses", "compare_pose_designs",
            "format_comparison"]

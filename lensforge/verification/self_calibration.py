@@ -26,7 +26,7 @@ from scipy.optimize import least_squares
 
 from ..errors import LensforgeError
 from ..optics.lens import Lens
-from ..optics.pose import matrix_to_pose, pose_to_matrix
+from ..optics.pose import matrix_to_pose, pose_to_matrix, transform_error
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.surfaces import Freeform
 
@@ -139,15 +139,14 @@ def self_calibrate_trial(ctx, nominal: ForwardModel, z, x_est, x_true, A, X_true
                          lens_ab: Lens) -> dict:
     """Run self-calibration inside a study trial; returns a record like the trial's
     (ok, rot_err_deg, trans_err_mm, ...) plus the estimated and true parameters."""
-    from .study import _transform_error
 
     scene = ctx.scene
     try:
         sc = self_calibrate(ctx.bench, ctx.lens, z, A, X_std, Z_std, scene.T_SO_nominal)
     except LensforgeError as e:
         return {"ok": False, "failure": f"self-calibration failed: {e}", "rot_err_deg": None, "trans_err_mm": None}
-    rot, trans = _transform_error(scene.Z, sc.Z)
-    xrot, xtrans = _transform_error(X_true, sc.X)
+    rot, trans = transform_error(scene.Z, sc.Z)
+    xrot, xtrans = transform_error(X_true, sc.X)
     true = {"thickness_mm": lens_ab.thickness - ctx.lens.thickness,
             "index": lens_ab.index(ctx.bench.laser.wavelength_nm) - ctx.lens.index(ctx.bench.laser.wavelength_nm)}
     return {"ok": True, "failure": "", "rot_err_deg": rot, "trans_err_mm": trans, "x_rot_err_deg": xrot,

@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 from ..errors import ConfigError, LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
-from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix
+from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
 from ..optics.shack_hartmann import ForwardModel
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "estimate_poses_batch", "BatchPoseEstimate", "run_trial",
@@ -320,18 +320,6 @@ def _substream(ss: np.random.SeedSequence, k: int) -> np.random.Generator:
 
 
 
-def _rot_deg(R: np.ndarray) -> float:
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))) if c < 0.999 else \
-        float(np.degrees(np.linalg.norm(Rotation.from_matrix(R).as_rotvec())))
-
-
-def _transform_error(T_true: np.ndarray, T_est: np.ndarray) -> tuple[float, float]:
-    """(rotation deg, translation mm) of T_true^-1 T_est."""
-    E = np.linalg.solve(T_true, T_est)
-    return _rot_deg(E[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
-
-
 def _as_built(ctx: StudyContext, rng: np.random.Generator) -> Lens:
     if ctx.tolerances is None:
         return ctx.lens
@@ -355,8 +343,8 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     (pose fits, mean), handeye_chi2_dof, and, with self-calibration, the same
     errors after it under "selfcal".
     """
-    from .handeye import pose_vector_cov_to_right, solve_handeye
-    from .robot import flange_pose, lens_pose_matrix
+    from ..calibration.handeye import solve_handeye
+    from ..calibration.robot import flange_pose, lens_pose_matrix
 
     cfg = ctx.config
     rng_lens, rng_scene, rng_noise = (_substream(ss, k) for k in range(3))
@@ -405,8 +393,8 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
                                sigma=scene.noise, cov_B=cov_B, on_degenerate="warn")
     except LensforgeError as e:
         return _fail(f"hand-eye failed: {e}", **base)
-    rot, trans = _transform_error(scene.Z, he.Z)
-    xrot, xtrans = _transform_error(X_true, he.X)
+    rot, trans = transform_error(scene.Z, he.Z)
+    xrot, xtrans = transform_error(X_true, he.X)
     rec = {"ok": True, "failure": "", "rot_err_deg": rot, "trans_err_mm": trans,
            "x_rot_err_deg": xrot, "x_trans_err_mm": xtrans,
            "bias": err.mean(axis=0).tolist(), "bias_std": err.std(axis=0).tolist(),
@@ -571,8 +559,8 @@ def calibration_plan(config: StudyConfig, plan_seed: int = 0) -> np.ndarray:
 def make_context(lens: Lens, bench: Bench, tolerances, config: StudyConfig, plan_seed: int = 0,
                  scene=None, grasp_sigma=None) -> StudyContext:
     """Assemble the trial context (plan, paper scene at the bench's distance, grasp error model)."""
-    from .initial_poses import InitialPoseModel
-    from .robot import paper_scene
+    from ..calibration.initial_poses import InitialPoseModel
+    from ..calibration.robot import paper_scene
 
     scene = scene or paper_scene(bench.placement.distance_mm)
     if grasp_sigma is None:

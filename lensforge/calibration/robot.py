@@ -38,8 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import ConfigError, PoseRangeError
-from ..optics.pose import matrix_to_pose, pose_to_matrix
-from .handeye import invert_poses
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 
 __all__ = [
     "RobotModel",

@@ -40,7 +40,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import CalibrationError
-from ..optics.pose import matrix_to_pose, pose_to_matrix, rotations, skew
+from ..optics.pose import (adjoint, invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right,
+                           right_jacobian_so3, rotations, skew)
 
 __all__ = [
     "HandEyeResult",
@@ -68,57 +69,6 @@ _RTOL_ABS = 1e-9
 _OBS_LIMIT_MM = 1.0
 _OBS_LIMIT_RAD = 0.01
 _ORTHO_TOL = 1e-6  # |R^T R - I| tolerated in input rotations
-
-
-# ----------------------------------------------------------------------------- SE(3) helpers
-
-
-def invert_poses(T) -> np.ndarray:
-    """Inverse(s) of rigid transform(s) (..., 4, 4), exact for orthonormal R."""
-    T = np.asarray(T, dtype=float)
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(R, -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def adjoint(T) -> np.ndarray:
-    """6x6 adjoint(s) of T for xi = (rho, omega): T P(xi) T^-1 = P(Ad_T xi) to first order."""
-    T = np.asarray(T, dtype=float)
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    Ad = np.zeros(T.shape[:-2] + (6, 6))
-    Ad[..., :3, :3] = R
-    Ad[..., :3, 3:] = skew(t) @ R
-    Ad[..., 3:, 3:] = R
-    return Ad
-
-
-def _right_jacobian_so3(r) -> np.ndarray:
-    """Right Jacobian J_r(r) of SO(3): R(r + dr) = R(r) Exp(J_r(r) dr) to first order."""
-    r = np.asarray(r, dtype=float)
-    th = np.linalg.norm(r)
-    K = skew(r)
-    if th < 1e-8:
-        return np.eye(3) - 0.5 * K + K @ K / 6.0
-    return (np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K)
-
-
-def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:
-    """Covariance of a pose vector x = (t, r) (as returned by the pose estimator, where
-    T = T_nominal P(x)) converted to this module's right perturbation of T.
-
-    P(x + dx) = P(x) P(xi) with xi = (R(r)^T dt, J_r(r) dr) to first order.
-    """
-    x = np.asarray(x, dtype=float)
-    M = np.zeros((6, 6))
-    M[:3, :3] = rotations(x[3:]).T
-    M[3:, 3:] = _right_jacobian_so3(x[3:])
-    return M @ np.asarray(cov_x, dtype=float) @ M.T
 
 
 # ----------------------------------------------------------------------------- validation
@@ -203,7 +153,7 @@ def residual_covariances(X, n: int, sigma=None, cov_B=None) -> np.ndarray:
     return S
 
 
-def _whiteners(S: np.ndarray, where: str) -> np.ndarray:
+def whiteners(S: np.ndarray, where: str) -> np.ndarray:
     """W_i with W_i^T W_i = S_i^-1 (inverse Cholesky factors), (n, 6, 6)."""
     S = 0.5 * (S + np.swapaxes(S, 1, 2))
     try:
@@ -241,7 +191,7 @@ def handeye_fisher(B, X, sigma=None, cov_B=None) -> np.ndarray:
     convention (mm, rad)."""
     B = np.asarray(B, dtype=float)
     n = B.shape[0]
-    W = _whiteners(residual_covariances(X, n, sigma, cov_B), "noise model")
+    W = whiteners(residual_covariances(X, n, sigma, cov_B), "noise model")
     Jw = (W @ handeye_jacobian(B)).reshape(-1, 12)
     return Jw.T @ Jw
 
@@ -253,10 +203,6 @@ def _project_so3(M: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(M)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     return U @ D @ Vt
-
-
-def _vec(M):  # column-major vec
-    return M.T.reshape(-1)
 
 
 def _unvec(v):
@@ -405,7 +351,7 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
     n = B.shape[0]
     if S is None:
         S = residual_covariances(X, n, sigma, cov_B)
-    W = _whiteners(S, "noise model")
+    W = whiteners(S, "noise model")
     Jw = (W @ handeye_jacobian(B)).reshape(-1, 12)
     sv_phys = np.linalg.svd(Jw, compute_uv=False)
     d = np.linalg.norm(Jw, axis=0)
@@ -541,7 +487,7 @@ def _param_jac(xi: np.ndarray) -> np.ndarray:
     """J_P(xi): P(xi + d) = P(xi) P(J_P(xi) d) to first order (6x6)."""
     M = np.zeros((6, 6))
     M[:3, :3] = pose_to_matrix(xi)[:3, :3].T
-    M[3:, 3:] = _right_jacobian_so3(xi[3:])
+    M[3:, 3:] = right_jacobian_so3(xi[3:])
     return M
 
 
@@ -632,7 +578,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     # pick the start (or the closed form asked for)
     scored = []
     for name, (X, Z) in candidates.items():
-        Wh = _whiteners(covs(X), "noise model")
+        Wh = whiteners(covs(X), "noise model")
         scored.append((_cost(A, B, X, Z, Wh), name, X, Z))
     scored.sort(key=lambda s: s[0])
     _, start, X, Z = scored[0]
@@ -652,7 +598,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     if method == "ml":
         converged = False
         for _ in range(max_outer):
-            Wh = _whiteners(covs(X), "noise model")
+            Wh = whiteners(covs(X), "noise model")
             X_new, Z_new, sol = _refine(A, B, X, Z, Wh, max_nfev)
             iterations += int(sol.nfev)
             step = np.abs(matrix_to_pose(invert_poses(np.stack([X, Z])) @ np.stack([X_new, Z_new]))).max()
@@ -664,7 +610,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
             warns.append("ml: the optimiser stopped before converging")
 
     S = covs(X)
-    Wh = _whiteners(S, "noise model")
+    Wh = whiteners(S, "noise model")
     e = _residuals(A, B, X, Z)
     r = np.einsum("nij,nj->ni", Wh, e)
     chi2_i = np.sum(r * r, axis=1)

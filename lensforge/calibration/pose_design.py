@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from .handeye import _whiteners, handeye_jacobian, residual_covariances
+from .handeye import handeye_jacobian, residual_covariances, whiteners
 from .robot import Scene, flange_pose, lens_pose_matrix, random_lens_poses
 
 __all__ = ["DesignResult", "design_poses", "predicted_uncertainty", "candidate_poses", "information_factors"]
@@ -43,7 +43,7 @@ def information_factors(scene: Scene, x, cov_B, sigma=None) -> np.ndarray:
     x = np.atleast_2d(np.asarray(x, dtype=float))
     B = lens_pose_matrix(scene, x)
     S = residual_covariances(scene.X, x.shape[0], scene.noise if sigma is None else sigma, cov_B)
-    W = _whiteners(S, "noise model")
+    W = whiteners(S, "noise model")
     return np.swapaxes(W @ handeye_jacobian(B), 1, 2)
 
 
