@@ -7,7 +7,9 @@ Run: .venv/bin/python benchmarks/bench_sensor_range.py
    for lenslet focal lengths 4.1-6.7 mm (the focal length is an assumption), fixed
    windows and tracking;
 3. bench geometry: per lens and pupil radius the lens-sensor distances (10-60 mm) on
-   which it is measurable with fixed windows at f = 5.2 mm, and the best one.
+   which it is measurable with fixed windows at f = 5.2 mm, and the best one;
+4. what the old lenslet-centre model would do on real data: the pose it estimates
+   (noise-free, nominal pose) from the centroid model's Zernikes, in CRLB units.
 """
 
 from __future__ import annotations
@@ -54,6 +56,20 @@ def main():
             txt = "none" if best is None else (f"{min(best['measurable_mm']):.1f}-{max(best['measurable_mm']):.1f} mm, "
                                                f"best {best['distance_mm']:.1f} mm (use {best['max_use']:.2f})")
             print(f"  {name:20s} pupil radius {r:.2f} mm: {txt}")
+    centre_model_bias()
+
+
+def centre_model_bias():
+    from lensforge.calibration.pose_estimation import estimate_pose_model
+
+    bench = lf.Bench.default()
+    old = bench.replace(sensor={"subaperture_quadrature": 1, "centroid_window_px": 0, "spot_assignment": "none"})
+    print("4. old centre model fitted to centroid-model data (nominal pose): pose bias / CRLB, chi2 (8 dof)")
+    for name in ["polynomial", "extended_polynomial"]:
+        lens = lf.paper_lens(name)
+        z = ForwardModel(bench, lens).zernike(np.zeros(6))
+        r = estimate_pose_model(ForwardModel(old, lens), z, np.zeros(6))
+        print(f"  {name:20s} tz bias {r.pose[2] * 1e3:6.1f} um  bias/CRLB {np.round(r.pose / r.std, 1)}  chi2 {r.chi2:.3g}")
 
 
 if __name__ == "__main__":
