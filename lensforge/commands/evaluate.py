@@ -8,13 +8,14 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from ..optics.lens import resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
-from ._common import emit_json, load_bench_arg, load_lens_arg
+from ._common import emit_json, load_bench_arg
 
 
-_NO_METRICS = {"rank": None, "kappa": None, "sigma_min": None, "J": None,
+_NO_METRICS = {"rank": None, "kappa": None, "sigma_min": None, "J": None, "unobservable": None,
                "crlb_std": {k: None for k in [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]}}
 
 
@@ -26,8 +27,9 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
     """
     rows = []
     for name in names:
-        lens, data = load_lens_arg(name)
-        bench = load_bench_arg(bench_path, data)
+        r = resolve_lens(name)
+        lens = r.lens
+        bench = load_bench_arg(bench_path, r)
         sr = ForwardModel(bench, lens).sensor_range()  # nominal pose; metrics need it in range
         m = metrics(bench, lens) if sr.ok else None
         rows.append({"lens": name, "description": lens.name, **(m.to_dict() if m else _NO_METRICS),
@@ -42,18 +44,22 @@ def _range_text(sr: dict | None) -> str:
 
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
-    """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF)."""
+    """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF, the
+    DOF unobservable by DESIGN.md's statistical rule)."""
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 
     t = Table(title=title)
-    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)] + ["sensor range"]:
+    for col in (["lens", "rank", "kappa", "sigma_min", "J"]
+                + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)]
+                + ["unobservable", "sensor range"]):
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
         std = r["crlb_std"]
         keys = [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]
         t.add_row(r["lens"], fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
-                  *[fmt(std[k]) for k in keys], _range_text(r.get("sensor_range")))
+                  *[fmt(std[k]) for k in keys], ", ".join(r.get("unobservable") or []) or "-",
+                  _range_text(r.get("sensor_range")))
     return t
 
 

@@ -13,6 +13,9 @@
 * sensor range: over the same poses every pupil lenslet's spot stays assignable by
   the sensor (``sensor.spot_assignment``, see ``optics/sensor_range.py``) with a margin:
   the largest fraction of the assignment limit used is at most 1 - ``range_margin``.
+* observability (opt-in, ``observable=True``): every pose DOF observable at the
+  nominal pose by DESIGN.md's statistical rule (``optics.sensitivity.observability``:
+  not numerically null and predicted 1-sigma within the bench's pose scale).
 
 ``violation`` is a non-negative number (0 = feasible) that the optimisers use as a
 penalty; ``check_design`` reports which constraint is violated and by how much.
@@ -29,6 +32,7 @@ import numpy as np
 from ..errors import ConfigError, DesignError, LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens, polar_grid
+from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, TIR, trace_rays
 
@@ -48,7 +52,9 @@ class Constraints:
     polynomial lens, printed and polished there, reaches 46.8 deg at its back rim).
     90 disables the check. range_margin: fraction of the sensor's spot-assignment limit
     kept free over the working range (ASSUMPTION 0.2: room for as-built deviations and
-    poses between the checked ones).
+    poses between the checked ones). observable: require every pose DOF observable at the
+    nominal pose (the statistical rule; off by default, the criteria already
+    penalise lost rank).
     """
 
     min_center_mm: float = 1.0
@@ -58,6 +64,7 @@ class Constraints:
     tir: bool = True
     max_slope_deg: float = 50.0
     range_margin: float = 0.2
+    observable: bool = False
 
     def __post_init__(self):
         if not (isinstance(self.max_slope_deg, (int, float)) and 0 < self.max_slope_deg <= 90):
@@ -86,15 +93,16 @@ class Constraints:
             )
 
     def to_dict(self) -> dict:
-        return {"min_center_mm": self.min_center_mm, "min_edge_mm": self.min_edge_mm,
-                "range_mm": self.range_mm, "range_rad": self.range_rad, "tir": self.tir,
-                "range_margin": self.range_margin}
+        d = {"min_center_mm": self.min_center_mm, "min_edge_mm": self.min_edge_mm,
+             "range_mm": self.range_mm, "range_rad": self.range_rad, "tir": self.tir,
+             "range_margin": self.range_margin}
+        return {**d, "observable": True} if self.observable else d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Constraints":
         if not isinstance(d, dict):
             raise ConfigError("constraints: expected an object")
-        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir", "range_margin"}
+        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir", "range_margin", "observable"}
         unknown = set(d) - allowed
         if unknown:
             raise ConfigError(f"constraints: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
@@ -260,6 +268,16 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                                 f"{c.range_margin}) at {where}; weaken the surface power, move the lens closer "
                                 "(placement.distance_mm) or shrink the working range"))
             pen += float(worst_use[k] - allowed) + float(np.mean(np.clip(worst_use - allowed, 0, None)))
+    if c.observable and not vs:
+        S, z0, _ = sensitivity_from_model(model, raise_invalid=False)
+        ob = None if S is None else metrics_from_S(S, model.noise_cov, bench, z0).observability
+        if ob is not None and not ob.observable.all():
+            excess = np.minimum(ob.std / np.asarray(bench.pose_scales, dtype=float), 1e3)
+            vs.append(Violation("observable", float(np.sum(~ob.observable)), 0.0,
+                                f"pose DOF {', '.join(ob.unobservable)} unobservable at the nominal pose (predicted "
+                                "1-sigma above the bench's pose scale); break the lens's symmetry or drop "
+                                "constraints.observable"))
+            pen += 1.0 + float(np.sum(np.log10(excess[~ob.observable])))
     return Feasibility(not vs, tuple(vs), pen, t_min, t_c, model, uv0)
 
 
