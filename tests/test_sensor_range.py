@@ -102,3 +102,14 @@ def test_bench_geometry_scan_finds_the_measurable_distances(bench):
     best = best_distance(rows)
     assert best[0.9] is None  # radius 0.9 mm: 16 spots leave their windows at 20 mm, more at 10 mm
     assert best[0.6] is not None and 20.0 in best[0.6]["measurable_mm"]
+
+
+def test_evaluate_reports_sensor_range_and_no_metrics_out_of_range(bench, tmp_path):
+    from lensforge.commands.evaluate import evaluate_lenses
+
+    lf.save_bench(bench.replace(sensor={"spot_assignment": "fixed"}), tmp_path / "fixed.toml")
+    ok, = evaluate_lenses(["polynomial"])
+    out, = evaluate_lenses(["polynomial"], str(tmp_path / "fixed.toml"))
+    assert ok["sensor_range"]["ok"] and ok["rank"] == 6
+    assert ok["sensor_range"]["max_slope_mrad"] == pytest.approx(13.46, abs=0.05)
+    assert not out["sensor_range"]["ok"] and out["sensor_range"]["lenslets_out"] == 16 and out["rank"] is None
