@@ -22,6 +22,8 @@ from ..design.optimize import optimize_design
 from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
 from ..optics.bench import Bench
 from ..verification.study import verify
+from ..fileio import check_output
+from ._common import check_seed
 from .evaluate import evaluate_lenses, metrics_table
 
 
@@ -32,6 +34,8 @@ def demo(
 ):
     """Evaluate the paper lenses, design a Zernike lens, export it, verify it as built."""
     console = Console(stderr=True, width=160)
+    check_seed(seed)
+    check_output(out, folder=True, need_mb=50)
     out.mkdir(parents=True, exist_ok=True)
     bench = Bench.default()
     t_all = time.perf_counter()

@@ -28,6 +28,7 @@ from ..errors import ConfigError
 from ..fileio import read_json, write_atomic
 from ..optics.bench import Bench
 from ..optics.lens import Lens
+from ..schema import DESIGN_KIND, check_header
 
 __all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
 
@@ -142,7 +143,7 @@ class Design:
     def to_dict(self) -> dict:
         d = {
             "schema_version": SCHEMA_VERSION,
-            "kind": "lensforge.design",
+            "kind": DESIGN_KIND,
             "model": self.model,
             "free": list(self.free),
             "parameters": copy.deepcopy(self.parameters),
@@ -172,10 +173,7 @@ class Design:
     def from_dict(cls, d: dict, where: str = "design") -> "Design":
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: expected a JSON object")
-        ver = d.get("schema_version")
-        if ver != SCHEMA_VERSION:
-            raise ConfigError(f"{where}.schema_version: expected {SCHEMA_VERSION}, got {ver!r}; "
-                              "re-run `lensforge design` with this lensforge version")
+        check_header(d, where, kind=DESIGN_KIND, required=True, versions=(SCHEMA_VERSION,))
         for req in ("lens", "bench", "model", "free", "parameters"):
             if req not in d:
                 raise ConfigError(f"{where}.{req}: missing")
