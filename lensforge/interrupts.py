@@ -15,7 +15,8 @@ An interrupt that arrives while a C extension initialises (e.g. OCP during the f
 seconds of ``export``) is seen when that initialisation returns: CPython runs signal
 handlers only between bytecodes.
 
-Library code never needs this module: without the guard, Ctrl-C is the usual
+When the process starts with SIGINT ignored (``nohup``, ``cmd &`` in a script) it stays
+ignored, as Unix tools do. Library code never needs this module: without the guard, Ctrl-C is the usual
 KeyboardInterrupt.
 """
 
@@ -37,18 +38,41 @@ class Interrupted(BaseException):
     """The user pressed Ctrl-C (SIGINT) while a lensforge command ran."""
 
 
+def _child_pids() -> list[int]:
+    """Our direct child processes (Dask workers, multiprocessing's resource tracker), from /proc."""
+    me, pids = os.getpid(), []
+    try:
+        entries = os.listdir("/proc")
+    except OSError:  # pragma: no cover - not Linux
+        return []
+    for e in entries:
+        if not e.isdigit():
+            continue
+        try:
+            with open(f"/proc/{e}/stat", "rb") as fh:
+                stat = fh.read().decode(errors="replace")
+            if int(stat.rsplit(")", 1)[1].split()[1]) == me:
+                pids.append(int(e))
+        except (OSError, ValueError, IndexError):
+            continue
+    return pids
+
+
 def _kill_children() -> None:
-    """Kill our child processes (Dask workers) without letting them print anything."""
+    """Kill our child processes without letting them print anything (they hold no results:
+    every finished trial is already in the store)."""
+    pids = set(_child_pids())
     try:
         import multiprocessing
 
-        for p in multiprocessing.active_children():
-            try:
-                p.kill()
-            except Exception:  # pragma: no cover - already gone
-                pass
+        pids |= {p.pid for p in multiprocessing.active_children() if p.pid}
     except Exception:  # pragma: no cover
         pass
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:  # pragma: no cover - already gone
+            pass
 
 
 def hard_exit(code: int = EXIT_INTERRUPTED, message: str = "error: interrupted") -> None:
@@ -82,7 +106,8 @@ class _State:
 def sigint_guard(grace_s: float = 1.5):
     """Within the block, SIGINT raises :class:`Interrupted`; yields a callable telling whether
     one arrived. Does nothing outside the main thread (signal handlers live there)."""
-    if threading.current_thread() is not threading.main_thread():
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):  # the caller chose to ignore Ctrl-C (nohup, `cmd &`)
         yield lambda: False
         return
     st = _State(grace_s)

@@ -128,13 +128,13 @@ def check_header(data: dict, where: str, kind: str | tuple, required: bool = Fal
         v = data.get("schema_version")
         if isinstance(v, bool) or not isinstance(v, int) or v not in versions:
             got = "missing" if "schema_version" not in data else f"got {type(v).__name__} {_short(v)}"
-            raise ConfigError(f"{where}.schema_version: must be the integer {' or '.join(map(str, versions))}, "
+            raise ConfigError(f"{where}: schema_version must be the integer {' or '.join(map(str, versions))}, "
                               f"{got}; this lensforge reads schema_version {versions[-1]} files")
     if "kind" in data or required:
         k = data.get("kind")
         if k not in kinds:
             got = "missing" if "kind" not in data else f"got {_short(k)}"
-            raise ConfigError(f"{where}.kind: must be {' or '.join(map(repr, kinds))}, {got}; "
+            raise ConfigError(f"{where}: kind must be {' or '.join(map(repr, kinds))}, {got}; "
                               "is this the right file?")
 
 

@@ -102,6 +102,7 @@ class TrialStore:
         self.config_hash = config_hash
         self._lock_fd = lock_fd
         self.created = created  # this open made the file (a failed start removes it again)
+        self.made_dir = False  # ... and its folder
 
     @classmethod
     @contextmanager
@@ -116,8 +117,11 @@ class TrialStore:
             empty = st.created and not st.done()
             st.close()
             if empty:
-                for f in (st.path, st.path.with_name(st.path.name + "-wal"), st.path.with_name(st.path.name + "-shm")):
+                for f in (st.path, st.path.with_name(st.path.name + "-wal"), st.path.with_name(st.path.name + "-shm"),
+                          _lock_path(st.path)):
                     f.unlink(missing_ok=True)
+                if st.made_dir and not any(st.path.parent.iterdir()):
+                    st.path.parent.rmdir()
             raise
         st.close()
 
@@ -129,13 +133,19 @@ class TrialStore:
         n_trials: the study's size; a resumed study may grow (larger n) but not shrink.
         """
         path = Path(path)
+        made_dir = not path.parent.exists()
         path.parent.mkdir(parents=True, exist_ok=True)
         lock_fd = _lock(path)
         try:
-            return cls._open_locked(path, config_hash_, config, resume, n_trials, lock_fd)
+            st = cls._open_locked(path, config_hash_, config, resume, n_trials, lock_fd)
         except BaseException:
             os.close(lock_fd)
+            if made_dir:
+                _lock_path(path).unlink(missing_ok=True)
+                path.parent.rmdir() if not any(path.parent.iterdir()) else None
             raise
+        st.made_dir = made_dir
+        return st
 
     @classmethod
     def _open_locked(cls, path, config_hash_, config, resume, n_trials, lock_fd) -> "TrialStore":
@@ -232,11 +242,15 @@ class TrialStore:
         self.close()
 
 
+def _lock_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.lock")
+
+
 def _lock(path: Path) -> int:
     """An exclusive lock on ``.<store>.lock`` beside the store (released when the fd closes)."""
     import fcntl
 
-    lock = path.with_name(f".{path.name}.lock")
+    lock = _lock_path(path)
     try:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as e:
@@ -367,7 +381,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     else:
         n = int(workers) if workers is not None else (os.cpu_count() or 1)
         cluster = LocalCluster(
-            n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=None,
+            n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=":0",
             env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
         )
         client = Client(cluster)
