@@ -34,8 +34,10 @@ def _write_json(path: Path, obj) -> None:
 
 def _check_sizes(seed: int, lenses: int, workers: int | None) -> None:
     check_seed(seed)
-    if not 1 <= lenses <= MAX_TRIALS:
-        raise ConfigError(f"--lenses/-n: must be from 1 to {MAX_TRIALS}, got {lenses}")
+    if lenses < 1:
+        raise ConfigError(f"--lenses/-n: must be >= 1, got {lenses}")
+    if lenses > MAX_TRIALS:
+        raise ConfigError(f"--lenses/-n: {lenses} is over the limit of {MAX_TRIALS} as-built lenses per study")
     if workers is not None and not 0 <= workers <= 256:
         raise ConfigError(f"--workers: must be from 0 (in this process) to 256, got {workers}")
 
