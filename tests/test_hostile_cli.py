@@ -76,7 +76,12 @@ def _hostile_run(cmd, tmp, option, value):
                 pass
         else:
             return  # connecting to random addresses takes the Dask timeout (20 s)
-    code, out, err = cli(cmd, *args)
+    cwd = os.getcwd()
+    os.chdir(tmp)  # a hostile value taken as a relative output path lands in tmp
+    try:
+        code, out, err = cli(cmd, *args)
+    finally:
+        os.chdir(cwd)
     assert_clean(code, err, allowed=(0, 1, 2) if cmd == "export" else (0, 2))
     if code == 2 and cmd in ("plot", "export", "estimate-study"):  # outputs all or none
         folder = args[args.index("-o") + 1] if "-o" in args else None
@@ -101,11 +106,11 @@ def test_hostile_options_slow_commands(tmp_path_factory, cmd, data):
     _hostile_run(cmd, tmp_path_factory.mktemp(cmd), option, value)
 
 
-@pytest.mark.parametrize("value", ["-1", "nan", "1e9", "abc", "/nonexistent/x"])
+@pytest.mark.parametrize("value", ["-1", "abc"])
 @pytest.mark.parametrize("cmd", SLOW)
 def test_hostile_options_slow_commands_smoke(tmp_path, cmd, value):
-    """CI: each slow command with its first few options set to a hostile value."""
-    for option in _options(cmd)[:3]:
+    """CI: each slow command with its first options set to a hostile value."""
+    for option in _options(cmd)[:2]:
         _hostile_run(cmd, tmp_path, option, value)
 
 
