@@ -214,3 +214,18 @@ def test_pose_entries_strict(tmp_path, entry, match):
         load_poses(p)
     assert "nan" not in str(e.value).lower()
     assert "A[2][0][3]" in str(e.value)
+
+
+def test_outlier_is_not_called_degenerate_motion():
+    from lensforge.calibration.handeye import solve_handeye
+
+    rng = np.random.default_rng(3)
+    X = pose_to_matrix(np.r_[1.0, 2.0, 30.0, 0.1, 0.0, 0.2])
+    Z = pose_to_matrix(np.r_[500.0, 10.0, 300.0, 0.0, 0.3, 0.0])
+    A = np.stack([pose_to_matrix(np.r_[rng.normal(0, 100, 3), rng.normal(0, 0.5, 3)]) for _ in range(10)])
+    B = np.stack([np.linalg.inv(Z) @ a @ X for a in A])
+    A[:, :3, 3] += rng.normal(0, 0.01, (10, 3))
+    A[4, 0, 3] += 5.0  # one 5 mm outlier in 10 well-spread poses
+    with pytest.raises(LensforgeError, match="not degenerate.*pose 4 has a residual") as e:
+        solve_handeye(A, B, "ml")
+    assert "Add poses with rotations" not in str(e.value)

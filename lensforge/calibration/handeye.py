@@ -378,9 +378,27 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
         "relative_singular_values": rel,
         "tolerance": tol,
         "observable": not bool(null.any()),
+        "geometric": bool(numerically_null.any()),  # lost rank whatever the noise: degenerate motion
         "null_space": N,
         "null_directions": tuple(names),
     }
+
+
+def _unobservable_message(obs: dict, e: np.ndarray, noise_given: bool) -> str:
+    """Why (X, Z) is not determined: degenerate motion (rank lost whatever the noise), or
+    residuals so large (an outlier, wrong units, noise much larger than stated) that the
+    uncertainty exceeds the observability limits."""
+    dirs = "; ".join(obs["null_directions"])
+    if obs.get("geometric", True):
+        return f"degenerate motion: unobservable {dirs}. Add poses with rotations about at least two non-parallel axes"
+    rt = np.linalg.norm(e[:, :3], axis=1)
+    i = int(np.argmax(rt))
+    med = float(np.median(rt))
+    hint = (f"pose {i} has a residual of {rt[i]:.3g} mm (median {med:.3g} mm): check it for an outlier"
+            if rt[i] > 5 * max(med, 1e-12) else f"residuals are {med:.3g} mm (median)")
+    noise = "" if noise_given else " or give the poses' noise (sigma_A, sigma_B)"
+    return (f"poorly determined, not degenerate: the data leave {dirs} uncertain beyond "
+            f"{_OBS_LIMIT_MM} mm / {_OBS_LIMIT_RAD} rad; {hint}{noise}")
 
 
 # ----------------------------------------------------------------------------- result
@@ -586,8 +604,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     warns = []
     obs = observability(B, X, S=covs(X))
     if not obs["observable"]:
-        msg = ("degenerate motion: unobservable " + "; ".join(obs["null_directions"])
-               + ". Add poses with rotations about at least two non-parallel axes")
+        msg = _unobservable_message(obs, _residuals(A, B, X, Z), noise_given)
         if on_degenerate == "raise":
             raise CalibrationError("A, B: " + msg)
         warns.append(msg)
@@ -617,7 +634,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     dof = 6 * n - 12
     obs = observability(B, X, S=S)
     if not obs["observable"] and not warns:
-        msg = "degenerate motion: unobservable " + "; ".join(obs["null_directions"])
+        msg = _unobservable_message(obs, e, noise_given)
         if on_degenerate == "raise":
             raise CalibrationError("A, B: " + msg)
         warns.append(msg)
