@@ -378,18 +378,27 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
         "relative_singular_values": rel,
         "tolerance": tol,
         "observable": not bool(null.any()),
-        "geometric": bool(numerically_null.any()),  # lost rank whatever the noise: degenerate motion
         "null_space": N,
         "null_directions": tuple(names),
     }
 
 
-def _unobservable_message(obs: dict, e: np.ndarray, noise_given: bool) -> str:
+def _rotation_spread_rad(B: np.ndarray) -> float:
+    """RMS rotation about the second most-rotated axis, relative to the first pose (rad):
+    near zero when the motion rotates about at most one axis (degenerate for AX = ZB)."""
+    rv = matrix_to_pose(invert_poses(B[:1]) @ B)[:, 3:]
+    return float(np.linalg.svd(rv, compute_uv=False)[1] / np.sqrt(B.shape[0]))
+
+
+_MIN_SPREAD_RAD = 0.02  # ~1 deg about a second axis: below it, call the motion degenerate
+
+
+def _unobservable_message(obs: dict, e: np.ndarray, noise_given: bool, B: np.ndarray) -> str:
     """Why (X, Z) is not determined: degenerate motion (rank lost whatever the noise), or
     residuals so large (an outlier, wrong units, noise much larger than stated) that the
     uncertainty exceeds the observability limits."""
     dirs = "; ".join(obs["null_directions"])
-    if obs.get("geometric", True):
+    if _rotation_spread_rad(B) < _MIN_SPREAD_RAD:
         return f"degenerate motion: unobservable {dirs}. Add poses with rotations about at least two non-parallel axes"
     rt = np.linalg.norm(e[:, :3], axis=1)
     i = int(np.argmax(rt))
@@ -604,7 +613,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     warns = []
     obs = observability(B, X, S=covs(X))
     if not obs["observable"]:
-        msg = _unobservable_message(obs, _residuals(A, B, X, Z), noise_given)
+        msg = _unobservable_message(obs, _residuals(A, B, X, Z), noise_given, B)
         if on_degenerate == "raise":
             raise CalibrationError("A, B: " + msg)
         warns.append(msg)
@@ -634,7 +643,7 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     dof = 6 * n - 12
     obs = observability(B, X, S=S)
     if not obs["observable"] and not warns:
-        msg = _unobservable_message(obs, e, noise_given)
+        msg = _unobservable_message(obs, e, noise_given, B)
         if on_degenerate == "raise":
             raise CalibrationError("A, B: " + msg)
         warns.append(msg)
