@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import ConfigError, LensGeometryError
 from ..fileio import read_json
 from ..schema import DESIGN_KIND, LENS_RANGES, check_header, check_ranges
+from .bench import Bench
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
@@ -244,7 +245,10 @@ def load_lens(source) -> tuple[Lens, dict]:
         if "lens" not in data:
             raise ConfigError(f"design file {p.name}: no \"lens\" key; write it with `lensforge design` "
                               "or add the lens as \"lens\": {front, back, thickness, ...}")
-        return Lens.from_dict(data["lens"], where=f"{p.name}:lens").validate(), data
+        lens = Lens.from_dict(data["lens"], where=f"{p.name}:lens").validate()
+        if "bench" in data:  # the whole file is checked, whichever part a command uses
+            Bench.from_dict(data["bench"], f"{p.name}:bench")
+        return lens, data
     if not {"front", "back", "thickness"} & set(data):
         raise ConfigError(f"lens file {p.name}: neither a design file (schema_version, kind, lens) nor a lens "
                           "(front, back, thickness); give a file written by `lensforge design`")
