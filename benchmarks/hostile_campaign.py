@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import io
 import json
 import os
 import random
@@ -27,18 +26,17 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from lensforge.cli import app, main  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))
+
+from hostile import base_args, cli, command_options, poses_file  # noqa: E402  (the suite's helpers)
 from lensforge.optics.bench import Bench  # noqa: E402
 from lensforge.optics.lens import paper_lens  # noqa: E402
-from lensforge.optics.pose import pose_to_matrix  # noqa: E402
 
 VALUES = ["-1", "0", "1", "2", "nan", "inf", "-inf", "1e9", "1e300", "-1e300", "1e-300", "abc", "", " ", "1.0",
           "9" * 30, "/nonexistent/dir/x", ".", "/", "\u00e9", "paper:nope", "1,2,3", "a=1:2", "x" * 300, "-0",
@@ -48,21 +46,16 @@ bad = []
 
 
 def run(args, cwd) -> tuple[str, int, str]:
-    out, err = io.StringIO(), io.StringIO()
+    """Run in process (in cwd); an exception escaping main counts as a traceback."""
     old = os.getcwd()
     os.chdir(cwd)
     try:
-        with redirect_stdout(out), redirect_stderr(err):
-            try:
-                main([str(a) for a in args])
-                code = 0
-            except SystemExit as e:
-                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    except BaseException as e:  # escaped main: a traceback for the user
+        code, _, err = cli(*args)
+    except BaseException as e:
         return "traceback", -1, f"{type(e).__name__}: {e}"
     finally:
         os.chdir(old)
-    return classify(args, code, err.getvalue()), code, err.getvalue()
+    return classify(args, code, err), code, err
 
 
 def classify(args, code, err) -> str:
@@ -87,46 +80,11 @@ def record(part, args, outcome, err, nonsense=False):
         bad.append({"part": part, "args": [str(a) for a in args], "outcome": outcome, "stderr": err[-800:]})
 
 
-def poses_file(path: Path, mutate=None):
-    rng = np.random.default_rng(1)
-    A = [pose_to_matrix(np.r_[rng.normal(0, 50, 3), rng.normal(0, 0.4, 3)]).tolist() for _ in range(8)]
-    X = pose_to_matrix(np.r_[1.0, 2.0, 30.0, 0.1, 0.0, 0.2])
-    Z = pose_to_matrix(np.r_[500.0, 10.0, 300.0, 0.0, 0.3, 0.0])
-    B = [(np.linalg.inv(Z) @ np.array(a) @ X).tolist() for a in A]
-    doc = {"units": "mm", "A": A, "B": B}
-    if mutate:
-        mutate(doc)
-    path.write_text(json.dumps(doc))
-    return path
-
-
-def base_args(cmd, tmp: Path):
-    return {
-        "evaluate": ["spherical"],
-        "compare": ["spherical"],
-        "design": ["--method", "nelder-mead", "--max-evals", "12", "-o", tmp / "d.json", "--no-progress"],
-        "plot": ["spherical", "-o", tmp / "plots"],
-        "export": ["spherical", "--stl", "--no-slicer", "--chord-tol", "0.05", "-o", tmp / "ex"],
-        "estimate-study": ["spherical", "--trials", "2", "-o", tmp / "est"],
-        "scenario": ["spherical", "--runs", "1", "--poses", "random", "-o", tmp / "sc"],
-        "handeye": [poses_file(tmp / "poses.json")],
-        "study": ["spherical", "-n", "2", "--poses", "8", "--workers", "0", "--no-progress", "-o", tmp / "st"],
-    }[cmd]
-
-
-def options(cmd):
-    import typer
-
-    group = typer.main.get_command(app)
-    return [(p.opts[0], bool(getattr(p, "is_flag", False))) for p in group.commands[cmd].params
-            if p.param_type_name == "option"]
-
-
 def part_a(n, rnd: random.Random):
     cmds = ["evaluate", "compare", "design", "plot", "export", "estimate-study", "scenario", "handeye", "study"]
     for k in range(n):
         cmd = rnd.choice(cmds)
-        name, is_flag = rnd.choice(options(cmd))
+        name, is_flag = rnd.choice(command_options(cmd))
         value = rnd.choice(VALUES) if rnd.random() < 0.8 else str(rnd.randint(-10**6, 10**6))
         if name in ("--scheduler",) or (name == "--workers" and value.lstrip("-").isdigit() and int(value) > 0):
             continue  # cluster start-ups are part D's business

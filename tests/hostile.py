@@ -9,14 +9,18 @@ line on stderr; never a traceback, never another exit status (1 is reserved for
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 from contextlib import redirect_stderr, redirect_stdout
+
+import numpy as np
 
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 from lensforge.cli import main
+from lensforge.optics.pose import pose_to_matrix
 
 # CI keeps hypothesis small; LENSFORGE_HOSTILE=campaign runs the long campaign.
 settings.register_profile("hostile-ci", max_examples=6, deadline=None, derandomize=True,
@@ -115,3 +119,43 @@ def corrupt(data: bytes, how: str, where: float) -> bytes:
     if how == "nul":
         return b"\x00" * max(1, k)
     return data
+
+
+def poses_file(path, mutate=None):
+    """A valid POSES.json (8 well-spread poses, exact AX = ZB); ``mutate(doc)`` may spoil it."""
+    rng = np.random.default_rng(1)
+    A = [pose_to_matrix(np.r_[rng.normal(0, 50, 3), rng.normal(0, 0.4, 3)]).tolist() for _ in range(8)]
+    X = pose_to_matrix(np.r_[1.0, 2.0, 30.0, 0.1, 0.0, 0.2])
+    Z = pose_to_matrix(np.r_[500.0, 10.0, 300.0, 0.0, 0.3, 0.0])
+    B = [(np.linalg.inv(Z) @ np.array(a) @ X).tolist() for a in A]
+    doc = {"units": "mm", "A": A, "B": B}
+    if mutate:
+        mutate(doc)
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def base_args(cmd, tmp):
+    """A cheap, valid invocation of each command (hostile options are added to it)."""
+    return {
+        "evaluate": ["spherical"],
+        "compare": ["spherical"],
+        "design": ["--method", "nelder-mead", "--max-evals", "12", "-o", tmp / "d.json", "--no-progress"],
+        "plot": ["spherical", "-o", tmp / "plots"],
+        "export": ["spherical", "--stl", "--no-slicer", "--chord-tol", "0.05", "-o", tmp / "ex"],
+        "estimate-study": ["spherical", "--trials", "2", "-o", tmp / "est"],
+        "scenario": ["spherical", "--runs", "1", "--poses", "random", "-o", tmp / "sc"],
+        "handeye": [poses_file(tmp / "poses.json")],
+        "study": ["spherical", "-n", "2", "--poses", "8", "--workers", "0", "--no-progress", "-o", tmp / "st"],
+    }[cmd]
+
+
+def command_options(cmd):
+    """(option name, is_flag) of each option of a command, from its click definition."""
+    import typer
+
+    from lensforge.cli import app
+
+    group = typer.main.get_command(app)
+    return [(p.opts[0], bool(getattr(p, "is_flag", False))) for p in group.commands[cmd].params
+            if p.param_type_name == "option" and p.opts[0] != "--help"]

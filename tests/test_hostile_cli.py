@@ -6,76 +6,27 @@ a file, onto an existing folder, a read-only folder; outputs appear all or none.
 
 from __future__ import annotations
 
-import json
 import os
 
-import numpy as np
 import pytest
-import typer
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hostile import PROFILE, assert_clean, cli, hostile_args
-from lensforge.cli import app
-from lensforge.optics.pose import pose_to_matrix
+from hostile import PROFILE, assert_clean, base_args, cli, command_options, hostile_args
 
 settings.load_profile(PROFILE)
-
-GROUP = typer.main.get_command(app)
-
-
-def _poses(path):
-    rng = np.random.default_rng(1)
-    A = [pose_to_matrix(np.r_[rng.normal(0, 50, 3), rng.normal(0, 0.4, 3)]).tolist() for _ in range(8)]
-    X = pose_to_matrix(np.r_[1.0, 2.0, 30.0, 0.1, 0.0, 0.2])
-    Z = pose_to_matrix(np.r_[500.0, 10.0, 300.0, 0.0, 0.3, 0.0])
-    B = [(np.linalg.inv(Z) @ np.array(a) @ X).tolist() for a in A]
-    path.write_text(json.dumps({"units": "mm", "A": A, "B": B}))
-    return path
-
-
-def _base(cmd, tmp):
-    """A cheap, valid invocation of each command (hostile options are added to it)."""
-    return {
-        "evaluate": ["spherical"],
-        "compare": ["spherical"],
-        "design": ["--method", "nelder-mead", "--max-evals", "12", "-o", tmp / "d.json", "--no-progress"],
-        "plot": ["spherical", "-o", tmp / "plots"],
-        "export": ["spherical", "--stl", "--no-slicer", "--chord-tol", "0.05", "-o", tmp / "ex"],
-        "estimate-study": ["spherical", "--trials", "2", "-o", tmp / "est"],
-        "scenario": ["spherical", "--runs", "1", "--poses", "random", "-o", tmp / "sc"],
-        "handeye": [_poses(tmp / "poses.json")],
-        "study": ["spherical", "-n", "2", "--poses", "8", "--workers", "0", "--no-progress", "-o", tmp / "st"],
-    }[cmd]
-
 
 FAST = ["evaluate", "compare", "handeye", "estimate-study", "study", "design"]
 SLOW = ["plot", "export", "scenario"]
 
 
-def _options(cmd):
-    """(option name, is_flag) of a command, from its click definition."""
-    out = []
-    for p in GROUP.commands[cmd].params:
-        if p.param_type_name == "option" and p.opts[0] != "--help":
-            out.append((p.opts[0], bool(getattr(p, "is_flag", False))))
-    return out
-
-
 def _hostile_run(cmd, tmp, option, value):
     name, is_flag = option
-    args = _base(cmd, tmp)
-    args = args + ([name] if is_flag else [name, value])
-    if name in ("--workers",) or (name == "--scheduler"):
-        args = [a for a in args]  # still in process: a bad value fails before any cluster starts
-        if name == "--workers":
-            try:
-                if int(value) > 0:
-                    return  # starting worker processes is the slow suite's job
-            except ValueError:
-                pass
-        else:
-            return  # connecting to random addresses takes the Dask timeout (20 s)
+    if name == "--scheduler":
+        return  # connecting to random addresses waits for the Dask timeout (20 s)
+    if name == "--workers" and value.strip().lstrip("+").isdigit() and int(value) > 0:
+        return  # starting worker processes is the slow suite's job
+    args = base_args(cmd, tmp) + ([name] if is_flag else [name, value])
     cwd = os.getcwd()
     os.chdir(tmp)  # a hostile value taken as a relative output path lands in tmp
     try:
@@ -89,19 +40,10 @@ def _hostile_run(cmd, tmp, option, value):
             assert not [f for f in os.listdir(folder) if not f.startswith(".")] or code == 0
 
 
-@pytest.mark.parametrize("cmd", FAST)
+@pytest.mark.parametrize("cmd", FAST + [pytest.param(c, marks=pytest.mark.slow) for c in SLOW])
 @given(data=st.data())
 def test_hostile_options(tmp_path_factory, cmd, data):
-    option = data.draw(st.sampled_from(_options(cmd)), label="option")
-    value = data.draw(hostile_args, label="value")
-    _hostile_run(cmd, tmp_path_factory.mktemp(cmd), option, value)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("cmd", SLOW)
-@given(data=st.data())
-def test_hostile_options_slow_commands(tmp_path_factory, cmd, data):
-    option = data.draw(st.sampled_from(_options(cmd)), label="option")
+    option = data.draw(st.sampled_from(command_options(cmd)), label="option")
     value = data.draw(hostile_args, label="value")
     _hostile_run(cmd, tmp_path_factory.mktemp(cmd), option, value)
 
@@ -110,7 +52,7 @@ def test_hostile_options_slow_commands(tmp_path_factory, cmd, data):
 @pytest.mark.parametrize("cmd", SLOW)
 def test_hostile_options_slow_commands_smoke(tmp_path, cmd, value):
     """CI: each slow command with its first options set to a hostile value."""
-    for option in _options(cmd)[:2]:
+    for option in command_options(cmd)[:2]:
         _hostile_run(cmd, tmp_path, option, value)
 
 
