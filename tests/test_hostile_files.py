@@ -226,6 +226,8 @@ def test_outlier_is_not_called_degenerate_motion():
     B = np.stack([np.linalg.inv(Z) @ a @ X for a in A])
     A[:, :3, 3] += rng.normal(0, 0.01, (10, 3))
     A[4, 0, 3] += 5.0  # one 5 mm outlier in 10 well-spread poses
-    with pytest.raises(LensforgeError, match="not degenerate.*pose 4 has a residual") as e:
-        solve_handeye(A, B, "ml")
-    assert "Add poses with rotations" not in str(e.value)
+    with pytest.warns(RuntimeWarning) as w:
+        r = solve_handeye(A, B, "ml")
+    text = " ".join(str(x.message) for x in w) + " ".join(r.warnings)
+    assert "degenerate motion" not in text and "Add poses with rotations" not in text
+    assert r.chi2_dof > 100  # the outlier shows in the fit

@@ -9,17 +9,19 @@ from typing import List, Optional
 
 import typer
 
+from ..calibration.pose_estimation import ESTIMATORS
 from ..errors import ConfigError
 from ..fileio import check_output, staged_dir, write_atomic
+from ..optics.lens import resolve_lens
 from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
 from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
-from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg, load_lens_arg
+from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg
 
 
 def estimate_study(
     lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
     trials: int = typer.Option(100, "--trials", help="estimates per lens"),
-    method: str = typer.Option("lm", "--method", help="lm (least squares, default) or ukf (the paper's baseline)"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS) + " (lm: least squares; ukf: the paper's baseline)"),
     ukf_repeats: int = typer.Option(12, "--ukf-repeats", help="ukf: updates on the same measurement (paper: 12)"),
     seed: int = typer.Option(0, "--seed", help="random seed (SeedSequence; same trials for every lens)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
@@ -30,8 +32,8 @@ def estimate_study(
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
     # ConfigError, not typer.Exit: under main()'s standalone_mode=False a typer.Exit
     # comes back as a return value and the exit status is lost
-    if method not in ("lm", "ukf"):
-        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if trials < 1 or ukf_repeats < 1:
         raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
     check_seed(seed)
@@ -40,8 +42,8 @@ def estimate_study(
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
     loaded = []
     for arg in lenses:  # every input validated before any work
-        lens, data = load_lens_arg(arg)
-        loaded.append((arg, lens, load_bench_arg(bench, data)))
+        r = resolve_lens(arg)
+        loaded.append((arg, r.lens, load_bench_arg(bench, r)))
     check_output(out, folder=True, need_mb=5)
     results = []
     for arg, lens, b in loaded:
@@ -62,7 +64,7 @@ def scenario(
     lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
     design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
     runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: lm or ukf"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS)),
     seed: int = typer.Option(0, "--seed", help="random seed"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
@@ -73,15 +75,16 @@ def scenario(
     solved with the estimator covariances; Z error vs its predicted bound."""
     if design not in ("random", "oed", "both"):
         raise ConfigError(f"--poses: {design!r} is not random, oed or both")
-    if method not in ("lm", "ukf"):
-        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if runs < 1:
         raise ConfigError(f"--runs: must be >= 1, got {runs}")
     check_seed(seed)
     if runs > MAX_TRIALS:
         raise ConfigError(f"--runs: {runs} is over the limit of {MAX_TRIALS}")
-    lens_obj, data = load_lens_arg(lens)
-    b = load_bench_arg(bench, data)
+    r = resolve_lens(lens)
+    lens_obj = r.lens
+    b = load_bench_arg(bench, r)
     check_output(Path(out) / "scenario.json", folder=False)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)

@@ -11,7 +11,8 @@ import typer
 from ..errors import ConfigError
 from ..manufacturing.features import FeatureSpec
 from ..fileio import check_output, dumps_json, staged_dir, write_atomic
-from ._common import emit_json, info, load_lens_arg
+from ..optics.lens import resolve_lens
+from ._common import emit_json, info
 
 MAX_TRIANGLES = 1e7  # ~2 GB in trimesh and OCP together; far finer than any printer resolves
 
@@ -47,7 +48,7 @@ def export_cmd(
         raise ConfigError(f"--chord-tol: must be a positive number of mm, got {chord_tol}")
     if fiducial_kind not in ("flat", "notch"):
         raise ConfigError(f"--fiducial-kind: must be 'flat' or 'notch', got {fiducial_kind!r}")
-    lens, _ = load_lens_arg(design)
+    lens = resolve_lens(design).lens
     if name is not None and (not name or "/" in name or name.startswith(".") or "\0" in name):
         raise ConfigError(f"--name: {name!r} is not a usable file stem; pass a plain name such as lens1")
     if edge_diameter is not None:

@@ -7,7 +7,7 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -20,7 +20,7 @@ from .bench import Bench
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
-__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens"]
+__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens", "resolve_lens", "ResolvedLens"]
 
 
 def polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
@@ -226,30 +226,74 @@ def paper_lens(name: str) -> Lens:
     return Lens(**PAPER_LENSES[key]).validate()
 
 
-def load_lens(source) -> tuple[Lens, dict]:
-    """A lens from a paper lens name, a design JSON file (lens under key "lens") or a
-    lens JSON file (``Lens.to_dict()``). Returns (validated lens, parsed JSON or {})."""
-    key = str(source).lower().replace("-", "_")
-    if isinstance(source, str) and key in PAPER_LENSES:
-        return paper_lens(key), {}
-    p = Path(source)
+@dataclass(frozen=True)
+class ResolvedLens:
+    """A lens named by the user: lens (validated), label (for tables), bench (the
+    design's bench when the source stores one, else None), data (the parsed JSON,
+    {} otherwise), source (the object passed in, e.g. a Design)."""
+
+    lens: Lens
+    label: str
+    bench: Bench | None = None
+    data: dict = field(default_factory=dict)
+    source: object = None
+
+    def bench_or(self, override: Bench | None = None) -> Bench:
+        """``override`` if given, else the design's bench, else the built-in default."""
+        return override or self.bench or Bench.default()
+
+
+def resolve_lens(spec) -> ResolvedLens:
+    """The one lens resolver of every command and study: a paper lens name
+    (spherical, polynomial, extended_polynomial, zernike; '-' for '_' accepted),
+    'paper:NAME', a design JSON file (lens under key "lens", bench under "bench"), a
+    lens JSON file (``Lens.to_dict()``), a Lens, or an object with ``.lens`` (and
+    optionally ``.bench``, e.g. a Design). Raises ConfigError naming the fix."""
+    if isinstance(spec, ResolvedLens):
+        return spec
+    if isinstance(spec, Lens):
+        return ResolvedLens(spec.validate(), spec.name or "lens", source=spec)
+    if not isinstance(spec, (str, Path)):
+        lens = getattr(spec, "lens", None)
+        if not isinstance(lens, Lens):
+            raise ConfigError(f"lens: expected a paper lens name, paper:NAME, a design or lens JSON file, a Lens or "
+                              f"a Design, got {type(spec).__name__}")
+        bench = getattr(spec, "bench", None)
+        return ResolvedLens(lens.validate(), lens.name or "lens", bench if isinstance(bench, Bench) else None,
+                            source=spec)
+    text = str(spec)
+    explicit = isinstance(spec, str) and text.lower().startswith("paper:")
+    key = (text.split(":", 1)[1] if explicit else text).lower().replace("-", "_")
+    if isinstance(spec, str) and key in PAPER_LENSES:
+        return ResolvedLens(paper_lens(key), f"paper {key}", source=spec)
+    if explicit:
+        raise ConfigError(f"lens: unknown paper lens {text!r}; use paper:{{{','.join(sorted(PAPER_LENSES))}}}")
+    p = Path(spec)
     if not p.exists():
         raise ConfigError(
-            f"lens: {str(source)!r} is neither a paper lens ({', '.join(sorted(PAPER_LENSES))}) nor an existing file"
+            f"lens: {text!r} not found: it is neither a paper lens ({', '.join(sorted(PAPER_LENSES))}) "
+            "nor an existing file"
         )
     data = read_json(p, "lens file")
     if not isinstance(data, dict):
         raise ConfigError(f"lens file {p}: expected a JSON object")
-    if "lens" in data or "schema_version" in data or "kind" in data:  # a design file
-        check_header(data, f"design file {p.name}", kind=DESIGN_KIND, required=True)
-        if "lens" not in data:
+    if "lens" in data or "schema_version" in data or "kind" in data:  # a design file: the whole file is
+        check_header(data, f"design file {p.name}", kind=DESIGN_KIND, required=True)  # checked, whichever
+        if "lens" not in data:                                                         # part a command uses
             raise ConfigError(f"design file {p.name}: no \"lens\" key; write it with `lensforge design` "
                               "or add the lens as \"lens\": {front, back, thickness, ...}")
         lens = Lens.from_dict(data["lens"], where=f"{p.name}:lens").validate()
-        if "bench" in data:  # the whole file is checked, whichever part a command uses
-            Bench.from_dict(data["bench"], f"{p.name}:bench")
-        return lens, data
+        bench = Bench.from_dict(data["bench"], f"{p.name}:bench") if "bench" in data else None
+        return ResolvedLens(lens, p.stem, bench, data, source=spec)
     if not {"front", "back", "thickness"} & set(data):
         raise ConfigError(f"lens file {p.name}: neither a design file (schema_version, kind, lens) nor a lens "
                           "(front, back, thickness); give a file written by `lensforge design`")
-    return Lens.from_dict(data, where=f"{p.name}:lens").validate(), data
+    return ResolvedLens(Lens.from_dict(data, where=f"{p.name}:lens").validate(), p.stem, None, data, source=spec)
+
+
+def load_lens(source) -> tuple[Lens, dict]:
+    """(validated lens, parsed JSON or {}) of ``resolve_lens(source)``."""
+    r = resolve_lens(source)
+    return r.lens, r.data
+
+

@@ -21,22 +21,17 @@ import math
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
-
 from ..errors import ConfigError
-from .study import StudyConfig, verify
+from ..manufacturing.tolerances import COMPONENT_SPECS
+from ..optics.lens import resolve_lens
+from .runner import dask_client
+from .study import StudyConfig, resolve_tolerances, verify
 
 __all__ = ["SensitivityRow", "BudgetRow", "Budget", "sensitivity_analysis", "tolerance_budget", "scaled_all",
            "MAIN_FIELD"]
 
 # the magnitude that names a component's size in the budget table (after Tolerances.resolved)
-MAIN_FIELD = {
-    "polishing": ("polish_depth_mm", "mm"),
-    "form": ("form_rms_mm", "mm RMS"),
-    "thickness": ("thickness_sigma_mm", "mm (1 sigma)"),
-    "index": ("index_sigma", "(1 sigma)"),
-    "shrinkage": ("shrinkage_sigma", "(1 sigma, linear)"),
-    "ripple": ("ripple_amplitude_mm", "mm"),
-}
+MAIN_FIELD = {name: c.main for name, c in COMPONENT_SPECS.items()}
 
 
 def scaled_all(tolerances, factor: float):
@@ -88,9 +83,8 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
                          workers: int | None = 0, scheduler: str | None = None, client=None,
                          progress: bool = False) -> list[SensitivityRow]:
     """Rows "none" (noise only), one per component (alone, at its given size), "all"."""
-    from .study import resolve_lens, resolve_tolerances
-
-    lens, bench = resolve_lens(lens, bench)
+    r = resolve_lens(lens)
+    lens, bench = r.lens, r.bench_or(bench)
     tol = resolve_tolerances(tolerances)
     if tol is None:
         raise ConfigError("tolerances: the sensitivity analysis needs a tolerance model")
@@ -108,8 +102,6 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
 def _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress):
     """Yield run(tolerances, config) -> StudyResult, all runs sharing one Dask client (or
     in-process when workers == 0 and no scheduler/client is given), with common random numbers."""
-    from .runner import dask_client
-
     own = client is None and not (workers == 0 and scheduler is None)
     with (dask_client(workers, scheduler) if own else nullcontext(client)) as cl:
         def run(t, config):
@@ -233,9 +225,8 @@ def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: fl
     lens may make the calibration at most k times worse than a perfect lens)."""
     from dataclasses import replace
 
-    from .study import resolve_lens, resolve_tolerances
-
-    lens, bench = resolve_lens(lens, bench)
+    r = resolve_lens(lens)
+    lens, bench = r.lens, r.bench_or(bench)
     tol = resolve_tolerances(tolerances)
     if tol is None:
         raise ConfigError("tolerances: the budget needs a tolerance model (--tolerances T.toml)")
