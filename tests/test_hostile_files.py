@@ -230,4 +230,3 @@ def test_outlier_is_not_called_degenerate_motion():
         r = solve_handeye(A, B, "ml")
     text = " ".join(str(x.message) for x in w) + " ".join(r.warnings)
     assert "degenerate motion" not in text and "Add poses with rotations" not in text
-    assert r.chi2_dof > 100  # the outlier shows in the fit
