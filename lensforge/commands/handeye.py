@@ -11,6 +11,7 @@ import typer
 from ..calibration.handeye import OBS_LIMITS, solve_handeye
 from ..errors import ConfigError
 from ..fileio import read_json
+from ..schema import POSE_TRANSLATION, Num, check_header, number, number_array
 from ._common import emit_json, info
 
 
@@ -23,6 +24,7 @@ def load_poses(path: str | Path) -> dict:
     data = read_json(p, "poses file")
     if not isinstance(data, dict):
         raise ConfigError(f"poses file {p}: expected a JSON object with keys units, A, B")
+    check_header(data, f"poses file {p.name}", kind="lensforge.poses")
     units = data.get("units")
     if units != "mm":
         raise ConfigError(f"{p.name}:units: must be \"mm\" (got {units!r}); convert translations to mm")
@@ -30,12 +32,9 @@ def load_poses(path: str | Path) -> dict:
     for key in ("A", "B"):
         if key not in data:
             raise ConfigError(f"{p.name}:{key}: missing; give a list of 4x4 homogeneous matrices")
-        try:
-            M = np.asarray(data[key], dtype=float)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{p.name}:{key}: must be a list of 4x4 numeric matrices") from None
-        if M.ndim != 3 or M.shape[1:] != (4, 4):
-            raise ConfigError(f"{p.name}:{key}: expected shape (n, 4, 4), got {M.shape}")
+        M = number_array(data[key], f"{p.name}:{key}", (None, 4, 4), POSE_TRANSLATION)
+        if M.ndim != 3:
+            raise ConfigError(f"{p.name}:{key}: give a list of 4x4 homogeneous matrices, got an empty list")
         out[key] = M
     if out["A"].shape[0] != out["B"].shape[0]:
         raise ConfigError(f"{p.name}: A has {out['A'].shape[0]} poses but B has {out['B'].shape[0]}; give one B per A")
@@ -46,22 +45,18 @@ def load_poses(path: str | Path) -> dict:
         s = data[key]
         if not isinstance(s, dict) or not {"translation_mm", "rotation_rad"} <= set(s):
             raise ConfigError(f"{p.name}:{key}: expected {{\"translation_mm\": .., \"rotation_rad\": ..}}")
-        try:
-            t, r = float(s["translation_mm"]), float(s["rotation_rad"])
-        except (TypeError, ValueError):
-            raise ConfigError(f"{p.name}:{key}: translation_mm and rotation_rad must be numbers") from None
-        if not (t >= 0 and r >= 0):
-            raise ConfigError(f"{p.name}:{key}: sigmas must be >= 0")
+        t = number(s["translation_mm"], f"{p.name}:{key}.translation_mm", Num(0.0, 1e3, "mm"))
+        r = number(s["rotation_rad"], f"{p.name}:{key}.rotation_rad", Num(0.0, 1.0, "rad"))
         return t, r
 
     out["sigma"] = sig("sigma_A") if "sigma_A" in data else None
     if "cov_B" in data and "sigma_B" in data:
         raise ConfigError(f"{p.name}: give cov_B or sigma_B, not both")
     if "cov_B" in data:
-        try:
-            C = np.asarray(data["cov_B"], dtype=float)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{p.name}:cov_B: must be 6x6 numeric matrices") from None
+        cb = data["cov_B"]
+        per_pose = isinstance(cb, list) and bool(cb) and isinstance(cb[0], list) and bool(cb[0]) \
+            and isinstance(cb[0][0], list)
+        C = number_array(cb, f"{p.name}:cov_B", (None, 6, 6) if per_pose else (6, 6), Num(-1e6, 1e6, "mm^2 / rad^2"))
         if C.shape not in ((6, 6), (out["A"].shape[0], 6, 6)):
             raise ConfigError(f"{p.name}:cov_B: expected one 6x6 or one per pose, got shape {C.shape}")
         out["cov_B"] = C

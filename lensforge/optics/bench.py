@@ -18,6 +18,7 @@ import tomli_w
 
 from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
+from ..schema import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
 
 __all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench",
            "write_atomic"]
@@ -141,7 +142,13 @@ class Bench:
     rank_rtol: float = 1e-7
 
     def __post_init__(self):
+        check_ranges(self.to_dict(), BENCH_RANGES, "")
         _validate(self)
+        s = self.sensor
+        if (s.aperture_mm / s.pitch_mm) ** 2 > MAX_LENSLETS:
+            raise ConfigError(f"sensor.pitch_mm: {s.aperture_mm} mm / {s.pitch_mm} mm gives "
+                              f"{(s.aperture_mm / s.pitch_mm) ** 2:.3g} lenslets, over the limit of "
+                              f"{MAX_LENSLETS} (512 x 512); check the units (mm)")
 
     @classmethod
     def default(cls) -> "Bench":
@@ -181,12 +188,7 @@ _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "po
 
 
 def _check_number(name: str, v, integer: bool = False):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ConfigError(f"{name}: expected a number, got {type(v).__name__} {v!r}")
-    if integer and float(v) != int(v):
-        raise ConfigError(f"{name}: expected an integer, got {v!r}")
-    if not math.isfinite(float(v)):
-        raise ConfigError(f"{name}: must be finite, got {v!r}")
+    number(v, name, Num(-math.inf, math.inf, integer=integer))
 
 
 def _validate(obj, prefix: str = "") -> None:
@@ -277,8 +279,10 @@ def _from_dict(cls, d, where):
 def load_bench(path) -> Bench:
     """Read a bench TOML file; missing keys take the defaults."""
     d = read_toml(path, "bench file")
+    check_header(d, f"bench file {Path(path).name}", kind="lensforge.bench")
     d.pop("schema_version", None)
-    return Bench.from_dict(d, "bench")
+    d.pop("kind", None)
+    return Bench.from_dict(d, f"{Path(path).name}:bench")
 
 
 def save_bench(bench: Bench, path) -> Path:
