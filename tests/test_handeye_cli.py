@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lensforge.calibration.robot import (
+    flange_pose,
     paper_scene,
     random_lens_poses,
     simulate_calibration,
@@ -74,7 +75,7 @@ def test_cli_bad_files(tmp_path, monkeypatch, capsys):
         "shape": {"units": "mm", "A": [r[:3] for r in A], "B": B},
         "has 12 poses but B has 11": {"units": "mm", "A": A, "B": B[:11]},
         "at least 3": {"units": "mm", "A": A[:2], "B": B[:2]},
-        "units": {"units": "m", "A": A, "B": B},
+        "units": {"units": "inch", "A": A, "B": B},
         "sigma_A": {"units": "mm", "A": A, "B": B, "sigma_A": {"translation_mm": 0.01}},
     }
     for needle, d in cases.items():
@@ -94,10 +95,32 @@ def test_cli_degenerate_motion(tmp_path, monkeypatch, capsys):
     d = simulate_calibration(paper_scene(), x, rng, cov_B=COV_B, check_reach=False)
     p = _bad(tmp_path, {"units": "mm", "A": d.A.tolist(), "B": d.B.tolist(),
                         "sigma_B": {"translation_mm": 1e-3, "rotation_rad": 1e-5}})
+    # never refused: the unobservable directions are named and their 1-sigma is null, not tiny
     code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json")
-    assert code != 0 and "degenerate motion" in err
-    code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json", "--allow-degenerate")
-    assert code == 0
+    assert code == 0, err
     res = json.loads(out)
     assert res["observable"] is False and res["null_directions"]
-    assert "warning" in err
+    assert "warning" in err and "degenerate motion" in err
+    std = res["frames"]["Z"]["std"]
+    # noisy near-degenerate: honest, large 1-sigma (> the 1 mm observability limit), never tiny
+    assert any(v is None or v > 1.0 for v in (std["tx_mm"], std["ty_mm"], std["tz_mm"]))
+    assert all(v is None or v > 0 for v in std.values())
+
+
+def test_cli_exactly_degenerate_motion_has_null_sigma(tmp_path, monkeypatch, capsys):
+    """Noise-free pure translations: rotation of Z about the motion-free axes is not
+    determined at all; its 1-sigma is null (infinite), not a tiny pseudo-inverse number."""
+    rng = np.random.default_rng(2)
+    x = np.c_[rng.uniform(-1, 1, (12, 3)), np.zeros((12, 3))]
+    s = paper_scene()
+    A = flange_pose(s, x, check_reach=False)
+    B = np.linalg.inv(s.Z) @ A @ s.X
+    p = _bad(tmp_path, {"units": "mm", "A": A.tolist(), "B": B.tolist(),
+                        "noise": {"robot_sigma_trans_mm": 0.005, "robot_sigma_rot_deg": 0.001,
+                                  "lens_sigma_trans_mm": 0.001, "lens_sigma_rot_deg": 0.001}})
+    code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json", "-o", tmp_path / "he")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["observable"] is False
+    assert None in res["frames"]["Z"]["std"].values()
+    assert (tmp_path / "he" / "handeye.json").exists() and (tmp_path / "he" / "easy_handeye.yaml").exists()

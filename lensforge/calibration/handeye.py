@@ -380,10 +380,16 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
         "observable": not bool(null.any()),
         "null_space": N,
         "null_directions": tuple(names),
+        "numerically_null": Vts[numerically_null].T * lim[:, None],
     }
 
 
 # ----------------------------------------------------------------------------- result
+
+
+def _json_list(a: np.ndarray) -> list:
+    """Nested list with non-finite entries (unobservable directions) as None (JSON null)."""
+    return [(_json_list(r) if np.ndim(r) else (float(r) if np.isfinite(r) else None)) for r in np.asarray(a, float)]
 
 
 @dataclass(frozen=True)
@@ -444,10 +450,10 @@ class HandEyeResult:
             "start_method": self.start_method,
             "X": self.X.tolist(),
             "Z": self.Z.tolist(),
-            "cov_X": self.cov_X.tolist(),
-            "cov_Z": self.cov_Z.tolist(),
-            "std_X": self.std_X.tolist(),
-            "std_Z": self.std_Z.tolist(),
+            "cov_X": _json_list(self.cov_X),
+            "cov_Z": _json_list(self.cov_Z),
+            "std_X": _json_list(self.std_X),
+            "std_Z": _json_list(self.std_Z),
             "perturbation": "right: T*P(xi), xi=(t_mm, rotvec_rad); X in {O} axes, Z in {S} axes",
             "chi2_dof": float(self.chi2_dof),
             "dof": int(self.dof),
@@ -625,6 +631,14 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     F = Jw.T @ Jw
     cov = np.linalg.pinv(F, rcond=1e-14, hermitian=True) if not obs["observable"] else np.linalg.inv(F)
     cov = 0.5 * (cov + cov.T)
+    # truly degenerate directions carry no information: infinite variance on every parameter
+    # they move (never the pseudo-inverse's tiny finite number)
+    Nn = obs["numerically_null"]
+    if Nn.shape[1]:
+        touched = np.linalg.norm(Nn / np.linalg.norm(Nn, axis=0), axis=1) > 1e-6
+        cov[touched, :] = 0.0
+        cov[:, touched] = 0.0
+        cov[touched, touched] = np.inf
     return HandEyeResult(
         X=X, Z=Z, cov_X=cov[:6, :6].copy(), cov_Z=cov[6:, 6:].copy(), cov=cov,
         residuals=e, residual_chi2=chi2_i, chi2=float(chi2_i.sum()), dof=dof,
