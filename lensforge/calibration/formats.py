@@ -214,7 +214,7 @@ def _check_header(path: Path, header, expected: list[str]):
 
 
 def _numeric_rows(path: Path, rows, names: list[str]):
-    """ids, (n, len(names)-1) numbers, line numbers."""
+    """ids, (n, len(names)-1) numbers, line numbers; names as the messages show them."""
     ids, vals, nos = [], [], []
     for no, f in rows:
         if len(f) != len(names):
@@ -266,7 +266,7 @@ def read_xyzabc_csv(path) -> PoseTable:
     _units(path, comments, required=False, allowed=("mm",))
     names = ["pose", "x", "y", "z", "a", "b", "c"]
     _check_header(path, header, names)
-    ids, v, nos = _numeric_rows(path, rows, names)
+    ids, v, nos = _numeric_rows(path, rows, ["pose", "X", "Y", "Z", "A", "B", "C"])
     return PoseTable(tuple(ids), xyzabc_to_matrix(v), str(path), tuple(nos))
 
 
@@ -396,7 +396,7 @@ def read_wfs_csv(path) -> WfsData:
     for no, f in rows:
         if len(f) != len(names):
             raise ConfigError(f"{path}: row {no}: {len(f) - 1} Zernike modes, expected {k} (as in the header)")
-    ids, z, nos = _numeric_rows(path, rows, expected)
+    ids, z, nos = _numeric_rows(path, rows, ["pose"] + [f"Z{i}" for i in range(1, k + 1)])
     return WfsData(tuple(ids), z, order, _wfs_header(path, comments), str(path), tuple(nos))
 
 

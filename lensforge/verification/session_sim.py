@@ -20,24 +20,27 @@ The session is a pure function of (design, tolerances, seed, robot, n).
 from __future__ import annotations
 
 import math
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from ..calibration import formats
 from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.robot import RobotModel
-from ..calibration.session import SCHEMA_VERSION, load_design_lens, plan
-from ..errors import ConfigError
+from ..calibration.formats import write_bundle
+from ..calibration.session import SCHEMA_VERSION, calibrate, frame_dict, load_design_lens, plan
+from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json
 from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
 from ..optics.bench import Bench
-from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
 
-__all__ = ["SimulatedSession", "simulate_session"]
+__all__ = ["SimulatedSession", "simulate_session", "check_sessions", "NEES_3SIGMA_6DOF"]
 
 # ASSUMPTION (as verification/scenario.py): 1-sigma CAD error of the sensor placement Z
 SENSOR_CAD_TRANSLATION_MM = 0.2
@@ -117,3 +120,50 @@ def simulate_session(design, *, tolerances: Tolerances | str | Path | None = "de
     return SimulatedSession(ids=ids, A_recorded=A_rec, A_true=A_true, wfs_ids=tuple(np.array(ids)[lit].tolist()),
                             zernike_thorlabs=zt.reshape(int(lit.sum()), -1), Z=Z, X=X, lens=as_built, x_true=x_true,
                             unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed))
+
+
+# 3-sigma-equivalent region of a 6-D Gaussian: the chi2(6) quantile at P(|N(0,1)| <= 3) = 0.9973
+NEES_3SIGMA_6DOF = float(chi2_dist.ppf(math.erf(3 / math.sqrt(2)), 6))
+
+
+def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
+                   robot: RobotModel | str | None = None, n: int = 12, progress=None) -> dict:
+    """Simulate ``n_sessions`` seeded sessions (seeds seed .. seed + n_sessions - 1, one
+    shared plan), calibrate each through the files a real session writes, and score Z.
+
+    Returns {"nees": (k,) e^T cov_Z^-1 e of Z (right perturbation, 6 DOF), "inside_3sigma":
+    fraction with NEES <= NEES_3SIGMA_6DOF (the 3-sigma-equivalent ellipsoid), "inside_3sigma_each_axis":
+    fraction with all six parent-frame components within 3 reported sigma, "chi2_dof": (k,),
+    "p_values": (k,) of the chi2 model check, "z_translation_error_mm", "z_rotation_error_deg",
+    "failed": sessions that raised}."""
+
+    lens, bench = load_design_lens(design, bench)
+    p = plan(lens, bench=bench, robot=robot, n=n, seed=seed)
+    nees, chi2_dof, pv, et, er, each, failed = [], [], [], [], [], [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(n_sessions):
+            s = simulate_session(lens, tolerances=tolerances, seed=seed + k, bench=bench, session_plan=p)
+            paths = write_bundle(Path(tmp) / f"s{k}", s.files())
+            try:
+                r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench, robot=p.robot)
+            except LensforgeError as e:
+                failed.append(f"seed {seed + k}: {e}")
+                continue
+            e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
+            nees.append(float(e @ np.linalg.solve(r.handeye.cov_Z, e)))
+            chi2_dof.append(r.chi2_dof)
+            pv.append(r.p_value)
+            et.append(float(np.linalg.norm(e[:3])))
+            er.append(math.degrees(float(np.linalg.norm(e[3:]))))
+            std = frame_dict(r.Z, r.handeye.cov_Z)["std"]
+            sig = np.array([std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
+                           [math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
+            err_parent = np.concatenate([r.Z[:3, 3] - s.Z[:3, 3], rotvecs(r.Z[:3, :3] @ s.Z[:3, :3].T)])
+            each.append(bool(np.all(np.abs(err_parent) <= 3 * sig)))
+            if progress is not None:
+                progress(k + 1, n_sessions)
+    nees = np.array(nees)
+    return {"nees": nees, "inside_3sigma": float(np.mean(nees <= NEES_3SIGMA_6DOF)) if len(nees) else float("nan"),
+            "inside_3sigma_each_axis": float(np.mean(each)) if each else float("nan"),
+            "chi2_dof": np.array(chi2_dof), "p_values": np.array(pv),
+            "z_translation_error_mm": np.array(et), "z_rotation_error_deg": np.array(er), "failed": failed}
