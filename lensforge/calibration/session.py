@@ -47,7 +47,7 @@ from .pose_design import candidate_poses, design_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 
-__all__ = ["Plan", "plan", "lit_mask", "CalibrationResult", "calibrate", "estimate", "load_design_lens",
+__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "calibrate", "estimate", "load_design_lens",
            "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
@@ -115,7 +115,8 @@ def lit_mask(model: ForwardModel, x: np.ndarray, margin_mm: float) -> np.ndarray
     return v.all(1) & inside
 
 
-def _cov_B_nominal(bench: Bench, lens: Lens) -> np.ndarray:
+def lens_pose_crlb(bench: Bench, lens: Lens) -> np.ndarray:
+    """Pose-estimation CRLB (6x6, (mm, rad)^2) at nominal; CalibrationError if rank < 6."""
     m = metrics(bench, lens)
     if m.rank < 6:
         raise CalibrationError(f"lens: its pose is not fully observable (rank {m.rank} < 6); hand-eye calibration "
@@ -236,7 +237,7 @@ def plan(design, *, bench: Bench | None = None, robot: RobotModel | str | None =
         raise ConfigError(f"n: need an integer >= 3 poses, got {n!r}")
     scene = robot_scene(robot, bench.placement.distance_mm)
     model = ForwardModel(bench, lens)
-    cov_B = _cov_B_nominal(bench, lens)
+    cov_B = lens_pose_crlb(bench, lens)
     rng = np.random.default_rng(seed)
     cand = candidate_poses(rng, n_candidates, work_translation_mm, work_rotation_rad)
     cand = cand[lit_mask(model, cand, lit_margin_mm)]
@@ -526,6 +527,11 @@ def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
                      "noise model; the lens as built may differ from its design (a joint as-built calibration "
                      "estimates it) or the robot/sensor noise is larger than assumed; the reported 1-sigma are "
                      "then too small")
+    m_fit = float(np.median(est_chi2))
+    fit_dof = len(model.modes) - 6
+    if fit_dof > 0 and m_fit > chi2_dist.ppf(0.999, fit_dof) / fit_dof:
+        warns.append(f"lens-pose fits: median chi2/dof = {m_fit:.3g} over {fit_dof} DOF: the measured wavefronts do "
+                     "not match the design's model (lens as built, bench pupil/wavelength, or sensor noise)")
     return CalibrationResult(X=he.X, Z=he.Z, handeye=he, poses_used=used, poses_rejected=tuple(rejected),
                              per_pose=tuple(per_pose), chi2=float(he.chi2), dof=int(he.dof),
                              chi2_dof=float(he.chi2_dof), p_value=p, method=method, robot=robot.name,
