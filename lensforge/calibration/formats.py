@@ -62,7 +62,7 @@ __all__ = [
     "xyzabc_to_matrix", "matrix_to_xyzabc", "quaternion_to_matrix", "matrix_to_quaternion",
     "PoseTable", "WfsData", "read_robot_poses", "read_wfs", "POSE_READERS", "WFS_READERS",
     "PLAN_WRITERS", "write_bundle", "krl_program", "easy_handeye_yaml", "pose_table_json",
-    "wfs_csv", "ORTHO_TOL",
+    "wfs_csv", "ORTHO_TOL", "rotation_defects",
 ]
 
 ORTHO_TOL = 1e-6  # |R^T R - I| tolerated in a rotation block
@@ -237,11 +237,16 @@ def _units(path: Path, comments: dict, required: bool, allowed=("mm", "m")) -> f
     return _UNITS_MM[u]
 
 
-def _check_rotations(path: Path, T: np.ndarray, rows, field_name: str = "matrix") -> np.ndarray:
-    R = T[:, :3, :3]
+def rotation_defects(R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(|R^T R - I| max, det R, indices of improper ones) for rotation blocks R (n, 3, 3):
+    improper = not orthonormal to ORTHO_TOL or det < 0."""
     orth = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(R)
-    bad = np.flatnonzero((orth > ORTHO_TOL) | (det < 0))
+    return orth, det, np.flatnonzero((orth > ORTHO_TOL) | (det < 0))
+
+
+def _check_rotations(path: Path, T: np.ndarray, rows, field_name: str = "matrix") -> np.ndarray:
+    orth, det, bad = rotation_defects(T[:, :3, :3])
     if bad.size:
         i = bad[0]
         raise ConfigError(f"{path}: row {rows[i]}, field {field_name}: rotation is not orthonormal with det +1 to "
@@ -250,7 +255,7 @@ def _check_rotations(path: Path, T: np.ndarray, rows, field_name: str = "matrix"
     bad = np.flatnonzero(last > 1e-9)
     if bad.size:
         raise ConfigError(f"{path}: row {rows[bad[0]]}, field {field_name}: last row must be [0, 0, 0, 1]")
-    U, _, Vt = np.linalg.svd(R)
+    U, _, Vt = np.linalg.svd(T[:, :3, :3])
     T = T.copy()
     T[:, :3, :3] = U @ Vt  # exact SO(3) (removes ~1e-12 rounding)
     return T
@@ -287,14 +292,20 @@ def read_quaternion_csv(path) -> PoseTable:
     return PoseTable(tuple(ids), quaternion_to_matrix(v[:, :3] * scale, q / nq[:, None]), str(path), tuple(nos))
 
 
+def _read_lensforge_json(path: Path, what: str, kind: str) -> dict:
+    """A lensforge JSON file of this kind with schema_version 1 (ConfigError otherwise)."""
+    data = read_json(path, what)
+    if not isinstance(data, dict) or data.get("kind") != kind:
+        raise ConfigError(f"{path}: field kind: expected a JSON object with \"kind\": \"{kind}\"")
+    if data.get("schema_version") != 1:
+        raise ConfigError(f"{path}: field schema_version: expected 1, got {data.get('schema_version')!r}")
+    return data
+
+
 def read_json_4x4(path) -> PoseTable:
     """Flange poses from lensforge's JSON (see the module docstring)."""
     path = Path(path)
-    data = read_json(path, "robot poses file")
-    if not isinstance(data, dict) or data.get("kind") != "robot_poses":
-        raise ConfigError(f"{path}: field kind: expected a JSON object with \"kind\": \"robot_poses\"")
-    if data.get("schema_version") != 1:
-        raise ConfigError(f"{path}: field schema_version: expected 1, got {data.get('schema_version')!r}")
+    data = _read_lensforge_json(path, "robot poses file", "robot_poses")
     if data.get("units") not in _UNITS_MM:
         raise ConfigError(f"{path}: field units: missing or not \"mm\"/\"m\" (got {data.get('units')!r})")
     poses = data.get("poses")
@@ -403,11 +414,7 @@ def read_wfs_csv(path) -> WfsData:
 def read_wfs_json(path) -> WfsData:
     """lensforge's own WFS JSON (see the module docstring)."""
     path = Path(path)
-    data = read_json(path, "WFS measurements file")
-    if not isinstance(data, dict) or data.get("kind") != "wfs_zernike":
-        raise ConfigError(f"{path}: field kind: expected a JSON object with \"kind\": \"wfs_zernike\"")
-    if data.get("schema_version") != 1:
-        raise ConfigError(f"{path}: field schema_version: expected 1, got {data.get('schema_version')!r}")
+    data = _read_lensforge_json(path, "WFS measurements file", "wfs_zernike")
     if data.get("units") != "um" or data.get("ordering") != "thorlabs":
         raise ConfigError(f"{path}: fields units/ordering: expected \"um\" and \"thorlabs\"")
     ms = data.get("measurements")
