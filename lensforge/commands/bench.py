@@ -52,17 +52,20 @@ def plan_cmd(
     n: int = typer.Option(12, "-n", "--poses", help="number of calibration poses"),
     seed: int = typer.Option(0, "--seed", help="seed of the candidate poses"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
-    formats_: str = typer.Option("csv,json,krl", "--formats", help=f"comma list of {', '.join(PLAN_WRITERS)}"),
+    formats_: str = typer.Option("auto", "--formats",
+                                 help=f"comma list of {', '.join(PLAN_WRITERS)}; auto = csv,json (+krl for a KUKA)"),
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ):
     """Plan the calibration poses the robot should visit (D-optimal; reach-checked, pupil-lit).
 
     Writes plan_xyzabc.csv (pose,X,Y,Z,A,B,C: mm, deg, KUKA R = Rz(A) Ry(B) Rx(C)),
-    plan_4x4.json, lf_calib.src/.dat (KUKA KRL E6POS points; $BASE = robot root,
+    plan_4x4.json, for a KUKA lf_calib.src/.dat (KRL E6POS points; $BASE = robot root,
     $TOOL = flange) and plan.json (predicted Z 1-sigma)."""
-    fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
     p = plan(design, bench=_bench(bench), robot=robot, n=n, seed=seed)
+    fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
+    if fm == ("auto",):
+        fm = ("csv", "json", "krl") if p.robot.name.upper().startswith("KUKA") else ("csv", "json")
     paths = write_bundle(out, p.files(fm))
     d = p.to_dict()
     s = d["predicted_Z_std"]
