@@ -47,11 +47,12 @@ from .pose_design import candidate_poses, design_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 
-__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "calibrate", "estimate", "load_design_lens",
+__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
+           "two_stage", "calibrate", "estimate", "load_design_lens",
            "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
-CALIBRATION_METHODS = ("two-stage",)  # "joint" once the joint as-built calibration (issue 10) lands
+CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha, progress) -> CalibrationResult
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -441,20 +442,28 @@ def _solve(A, B, C, noise):
         return solve_handeye(A, B, method="ml", sigma=noise, cov_B=C, on_degenerate="warn")
 
 
-def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
-              robot: RobotModel | str | None = None, method: str = "two-stage",
-              outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
-    """X and Z from a WFS export and the recorded flange poses (see the module docstring).
+@dataclass(frozen=True, eq=False)
+class SessionData:
+    """A bench session's inputs, matched by pose id: what every calibration method gets.
 
-    design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
-    WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
-    name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method:
-    "two-stage" ("joint" when available); progress: optional callable (done, total)
-    called after each lens-pose estimate. Raises ConfigError/CalibrationError for bad
-    input or fewer than 3 usable poses.
-    """
-    if method not in CALIBRATION_METHODS:
-        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
+    ids (n,); A: (n, 4, 4) recorded flange poses (mm); z: (n, m) measured Zernikes (um,
+    Noll modes model.modes); model: ForwardModel of the design's lens on the bench as
+    measured (WFS order, pupil, wavelength); robot; scene: the robot's nominal cell
+    (initial guesses); rejected: [{"pose", "reason"}] so far (unmatched ids)."""
+
+    ids: tuple
+    A: np.ndarray
+    z: np.ndarray
+    model: ForwardModel
+    robot: RobotModel
+    scene: Scene
+    rejected: tuple = ()
+
+
+def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
+                  robot: RobotModel | str | None = None) -> SessionData:
+    """Read and match a session's files by pose id (ids in one file only are reported in
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files)."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     wfs = _as_table(measurements, formats.read_wfs)
@@ -473,11 +482,38 @@ def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
     b = bench_for_measurements(bench, wfs)
-    scene = robot_scene(robot, b.placement.distance_mm)
     model = ForwardModel(b, lens)
-    A_all = poses.T[[poses.ids.index(i) for i in common]]
-    Z_rows = wfs.zernike[[wfs.ids.index(i) for i in common]]
-    z_all = zernike_for_model(Z_rows, model)
+    A = poses.T[[poses.ids.index(i) for i in common]]
+    z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
+                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected))
+
+
+def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
+              robot: RobotModel | str | None = None, method: str = "two-stage",
+              outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+    """X and Z from a WFS export and the recorded flange poses (see the module docstring).
+
+    design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
+    WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
+    name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
+    CALIBRATION_METHODS name ("two-stage"; the joint as-built calibration registers
+    there when it lands); progress: optional callable (done, total) called after each
+    lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
+    than 3 usable poses.
+    """
+    if method not in CALIBRATION_METHODS:
+        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
+    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress)
+
+
+def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+    """Two-stage calibration of a matched session: lens poses one by one, then A X = Z B
+    by maximum likelihood, robust outlier test and chi2 model check (module docstring)."""
+    model, scene, robot = data.model, data.scene, data.robot
+    rejected = list(data.rejected)
+    common, A_all, z_all = data.ids, data.A, data.z
     # initial guesses: the lens pose the nominal cell predicts for each recorded flange pose
     T_nom_inv = invert_poses(scene.T_SO_nominal)
     x_cell = matrix_to_pose(T_nom_inv @ invert_poses(scene.Z) @ A_all @ scene.X)
@@ -534,5 +570,8 @@ def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
                      "not match the design's model (lens as built, bench pupil/wavelength, or sensor noise)")
     return CalibrationResult(X=he.X, Z=he.Z, handeye=he, poses_used=used, poses_rejected=tuple(rejected),
                              per_pose=tuple(per_pose), chi2=float(he.chi2), dof=int(he.dof),
-                             chi2_dof=float(he.chi2_dof), p_value=p, method=method, robot=robot.name,
+                             chi2_dof=float(he.chi2_dof), p_value=p, method="two-stage", robot=robot.name,
                              warnings=tuple(warns), outlier_threshold=thr)
+
+
+CALIBRATION_METHODS["two-stage"] = two_stage

@@ -20,7 +20,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ..calibration.formats import PLAN_WRITERS, write_bundle
 from ..calibration.robot import ROBOTS
-from ..calibration.session import calibrate, estimate, frame_dict, plan
+from ..calibration.session import CALIBRATION_METHODS, calibrate, estimate, frame_dict, plan
 from ..optics.bench import load_bench
 from ..optics.pose import DOF_NAMES
 from ._common import emit_json, info
@@ -86,7 +86,7 @@ def calibrate_cmd(
                                      help="flange poses: CSV pose,X,Y,Z,A,B,C (mm/deg), CSV pose,x,y,z,qw,qx,qy,qz "
                                           "with '# units: m|mm', or JSON 4x4"),
     robot: Optional[str] = typer.Option(None, "--robot", help=_ROBOT_HELP),
-    method: str = typer.Option("two-stage", "--method", help="two-stage (joint: when available)"),
+    method: str = typer.Option("two-stage", "--method", help=f"calibration method: {', '.join(CALIBRATION_METHODS)}"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(Path("exports/calibration"), "-o", "--out", help="output folder"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
