@@ -36,7 +36,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..errors import CalibrationError, ConfigError, LensforgeError, PoseRangeError
 from ..optics.bench import Bench
-from ..optics.lens import Lens, load_lens
+from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
@@ -59,17 +59,10 @@ CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha
 
 
 def load_design_lens(design, bench: Bench | None = None) -> tuple[Lens, Bench]:
-    """(lens, bench) from a design file path / paper lens name / Lens; the bench is
-    the given one, else the design file's, else the default."""
-    if isinstance(design, Lens):
-        return design, bench or Bench.default()
-    if hasattr(design, "lens") and hasattr(design, "bench"):  # a Design object
-        return design.lens, bench or design.bench
-    lens, data = load_lens(design)
-    if bench is None:
-        bench = Bench.from_dict(data["bench"], "design.bench") if isinstance(data.get("bench"), dict) \
-            else Bench.default()
-    return lens, bench
+    """(lens, bench) of anything ``optics.lens.resolve_lens`` takes (design file, paper
+    lens, Lens, Design); the bench is the given one, else the design's, else the default."""
+    r = resolve_lens(design)
+    return r.lens, r.bench_or(bench)
 
 
 def bench_for_measurements(bench: Bench, wfs: formats.WfsData) -> Bench:

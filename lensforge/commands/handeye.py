@@ -12,8 +12,9 @@ units of the poses. Legacy keys ``sigma_A`` / ``sigma_B`` ({translation_mm,
 rotation_rad}) are accepted. Without a noise model the noise is estimated from the
 residuals. It can also come from ``--noise NOISE.json`` (the same keys).
 
-A noisy problem is solved and warned about with its predicted 1-sigma; on truly
-degenerate motion the unobservable directions are named and their 1-sigma is null.
+A noisy problem is solved and warned about with its predicted 1-sigma, never refused;
+degenerate motion (directions the motion lacks) is refused naming them, or with
+``--allow-degenerate`` solved with a null 1-sigma on those directions.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 import typer
 
 from ..calibration.formats import easy_handeye_yaml, read_robot_poses, write_bundle
-from ..calibration.handeye import solve_handeye
+from ..calibration.handeye import OBS_LIMITS, solve_handeye
 from ..calibration.session import frame_dict
 from ..errors import ConfigError
 from ..fileio import dumps_json, read_json
@@ -153,8 +154,14 @@ def handeye_cmd(
     method: str = typer.Option("ml", "--method", help="ml | shah | li"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder (handeye.json, easy_handeye.yaml)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
-    allow_degenerate: bool = typer.Option(False, "--allow-degenerate", hidden=True,
-                                          help="(no effect: degenerate motion is always reported, never refused)"),
+    allow_degenerate: bool = typer.Option(
+        False, "--allow-degenerate",
+        help="solve degenerate motion anyway: its unobservable directions get a null 1-sigma"),
+    obs_limit_mm: float = typer.Option(OBS_LIMITS[0], "--obs-limit-mm",
+                                       help="predicted 1-sigma (mm) beyond which a direction is reported "
+                                            "unobservable (solved and warned, never refused)"),
+    obs_limit_rad: float = typer.Option(OBS_LIMITS[1], "--obs-limit-rad",
+                                        help="the same for rotations (rad)"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
     if poses is not None and (robot_poses or lens_poses):
@@ -177,7 +184,8 @@ def handeye_cmd(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res = solve_handeye(kw["A"], kw["B"], method=method, sigma=kw["sigma"], cov_B=kw["cov_B"],
-                            on_degenerate="warn")
+                            on_degenerate="warn" if allow_degenerate else "raise",
+                            obs_limits=(obs_limit_mm, obs_limit_rad))
     Zf, Xf = frame_dict(res.Z, res.cov_Z), frame_dict(res.X, res.cov_X)
     info(f"hand-eye ({res.method}, {res.residuals.shape[0]} poses, noise model {res.noise_model}): "
          f"chi2/dof = {res.chi2_dof:.3g}")
