@@ -44,7 +44,7 @@ from ..optics.zernike import from_thorlabs_vector
 from . import formats
 from .handeye import solve_handeye
 from .pose_design import candidate_poses, design_poses
-from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model
+from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 
 __all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
@@ -511,19 +511,27 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
     T_nom_inv = invert_poses(scene.T_SO_nominal)
     x_cell = matrix_to_pose(T_nom_inv @ invert_poses(scene.Z) @ A_all @ scene.X)
     ids, A, B, C, est_chi2 = [], [], [], [], []
+    # all poses at once (batched LM from the cell's prediction); a pose that fails is retried alone from nominal
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnobservableWarning)
+        batch = estimate_poses_batch(model, z_all, np.clip(x_cell, -4.0, 4.0))
+    dof = len(model.modes) - 6
     for k, i in enumerate(common):
-        est, reason = _estimate_one(model, z_all[k], [x_cell[k], None])
-        if est is None:
-            rejected.append({"pose": i, "reason": f"lens pose not found (unlit or out of range): {reason}"})
+        if batch.converged[k] and np.all(np.isfinite(batch.cov[k])):
+            pose, cov, chi2_dof = batch.poses[k], batch.cov[k], float(batch.chi2[k]) / dof
         else:
-            ids.append(i)
-            A.append(A_all[k])
-            B.append(scene.T_SO_nominal @ pose_to_matrix(est.pose))
-            C.append(pose_vector_cov_to_right(est.pose, est.cov))
-            est_chi2.append(est.chi2_dof)
+            est, reason = _estimate_one(model, z_all[k], [None])
+            if est is None:
+                rejected.append({"pose": i, "reason": f"lens pose not found (unlit or out of range): {reason}"})
+                continue
+            pose, cov, chi2_dof = est.pose, est.cov, est.chi2_dof
+        ids.append(i)
+        A.append(A_all[k])
+        B.append(scene.T_SO_nominal @ pose_to_matrix(pose))
+        C.append(pose_vector_cov_to_right(pose, cov))
+        est_chi2.append(chi2_dof)
         if progress is not None:
             progress(k + 1, len(common))
-
     if len(ids) < 3:
         raise CalibrationError(f"calibrate: only {len(ids)} poses gave a lens pose (need >= 3); "
                                + "; ".join(f"{r['pose']}: {r['reason']}" for r in rejected[:3]))
