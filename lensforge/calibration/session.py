@@ -15,10 +15,11 @@ pose with its covariance (``pose_estimation``, Levenberg-Marquardt from the pose
 cell predicts for the recorded flange pose, then from nominal); (2) A X = Z B by
 maximum likelihood (``handeye.solve_handeye``) with the robot's repeatability and
 each pose's covariance. Poses are matched by id; ids in one file only, unlit poses
-and poses whose estimate fails are reported and left out. Outliers: a pose whose
-hand-eye residual chi2 (6 DOF) exceeds the Bonferroni 1 - alpha/n quantile after
-scaling by the median chi2 (robust to an overall misfit) is flagged, left out and
-the solve repeated once. Model check: chi2 of the final solve against its degrees
+and poses whose estimate fails are reported and left out. Outliers, two robust
+tests (Bonferroni 1 - alpha/n quantile of the chi2 law, scaled up by the median
+chi2 over its expectation so that an overall misfit does not reject every pose):
+first on each lens-pose fit (m - 6 DOF: a wrong local minimum or a corrupted frame),
+then on each pose's hand-eye residual (6 DOF), after which the solve is repeated once. Model check: chi2 of the final solve against its degrees
 of freedom (p-value); a small p-value warns that the lens as built or the noise
 model differs from what the design says (``method="joint"`` estimates the as-built
 lens, issue 10; not available yet).
@@ -535,6 +536,18 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
     if len(ids) < 3:
         raise CalibrationError(f"calibrate: only {len(ids)} poses gave a lens pose (need >= 3); "
                                + "; ".join(f"{r['pose']}: {r['reason']}" for r in rejected[:3]))
+    # robust test on the lens-pose fits: a wrong local minimum or a corrupted frame fits far worse than the rest
+    fit = np.array(est_chi2) * dof
+    fit_thr = float(chi2_dist.ppf(1.0 - outlier_alpha / len(ids), dof)
+                    * max(1.0, float(np.median(fit)) / chi2_dist.median(dof)))
+    bad_fit = fit > fit_thr
+    if bad_fit.any() and (~bad_fit).sum() >= 3:
+        for k in np.flatnonzero(bad_fit):
+            rejected.append({"pose": ids[k], "reason": f"outlier: lens-pose fit chi2/dof {est_chi2[k]:.3g} above the "
+                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {fit_thr / dof:.3g}"})
+        keep_fit = np.flatnonzero(~bad_fit)
+        ids = [ids[k] for k in keep_fit]
+        A, B, C, est_chi2 = ([v[k] for k in keep_fit] for v in (A, B, C, est_chi2))
     A, B, C = np.array(A), np.array(B), np.array(C)
     noise = robot.noise
     he = _solve(A, B, C, noise)
