@@ -486,8 +486,7 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
     if weak:
         warnings.warn(f"pose DOF {', '.join(weak)}: predicted 1-sigma exceeds the bench's pose scale "
                       "(estimated, but barely measured)", WeakObservabilityWarning, stacklevel=3)
-    _, _, Vt = np.linalg.svd(Jw0 * D)
-    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], basis=Vt[:ob.rank].T, null=null, D=D)
+    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], basis=ob.basis, null=null, D=D)
     x, cov, converged, message, iterations, n_evals = ESTIMATORS[method](prob, jac=jac, **options)
     n_evals += 1 + (12 if jac == "central" else 6)
     out = _in_range(bench, x)
