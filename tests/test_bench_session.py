@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from scipy.stats import kstest
 
+from conftest import run_cli_inprocess
+
 from lensforge.calibration.robot import ROBOTS, robot_from_dict
 from lensforge.calibration.session import calibrate, estimate, plan
 from lensforge.fileio import read_toml
@@ -81,25 +83,9 @@ class _Res:
         self.returncode, self.stdout, self.stderr = code, out, err
 
 
-def _cli(monkeypatch, capsys, *args):
-    """Run the CLI in-process (shares the traced kernels; subprocess runs are covered elsewhere)."""
-    import sys
-
-    from lensforge.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["lensforge", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return _Res(code, out.out, out.err)
-
-
 def test_cli_simulate_calibrate_estimate(tmp_path, monkeypatch, capsys):
     def run_cli(*args):
-        return _cli(monkeypatch, capsys, *args)
+        return _Res(*run_cli_inprocess(monkeypatch, capsys, *args))
 
     sess, cal = tmp_path / "s", tmp_path / "c"
     res = run_cli("simulate-session", LENS, "-t", "none", "--seed", "2", "-n", "8", "-o", str(sess))

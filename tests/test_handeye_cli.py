@@ -2,10 +2,11 @@
 
 import json
 import math
-import sys
 
 import numpy as np
 import pytest
+
+from conftest import run_cli_inprocess
 
 from lensforge.calibration.robot import (
     flange_pose,
@@ -18,16 +19,7 @@ COV_B = np.diag([1e-3] * 3 + [1e-5] * 3) ** 2
 
 
 def _run(monkeypatch, capsys, *args):
-    from lensforge.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["lensforge", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+    return run_cli_inprocess(monkeypatch, capsys, *args)
 
 
 def _poses(tmp_path, **extra):
