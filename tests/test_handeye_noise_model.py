@@ -2,10 +2,11 @@
 
 import json
 import math
-import sys
 
 import numpy as np
 from scipy.optimize import least_squares
+
+from conftest import run_cli_inprocess
 
 from lensforge.calibration.handeye import solve_handeye
 from lensforge.calibration.robot import paper_scene, random_lens_poses, simulate_calibration
@@ -63,8 +64,6 @@ def test_ml_with_noise_model_matches_reference_ml():
 
 def test_cli_noise_block_and_metres(tmp_path, monkeypatch, capsys):
     """POSES.json in metres with the per-axis noise block gives the same Z as in mm."""
-    from lensforge.cli import main
-
     rng = np.random.default_rng(3)
     s = paper_scene()
     d = simulate_calibration(s, random_lens_poses(rng, 12, 2.0, math.radians(5)), rng,
@@ -78,14 +77,10 @@ def test_cli_noise_block_and_metres(tmp_path, monkeypatch, capsys):
         B[:, :3, 3] *= k
         p = tmp_path / f"{units}.json"
         p.write_text(json.dumps({"units": units, "A": A.tolist(), "B": B.tolist(), "noise": noise}))
-        monkeypatch.setattr(sys, "argv", ["lensforge", "handeye", str(p), "--json"])
-        try:
-            main()
-        except SystemExit as e:
-            assert not e.code
-        out = capsys.readouterr()
-        res[units] = json.loads(out.out)
-        assert "A B C (deg)" in out.err and "quaternion" in out.err
+        code, out, err = run_cli_inprocess(monkeypatch, capsys, "handeye", p, "--json")
+        assert code == 0, err
+        res[units] = json.loads(out)
+        assert "A B C (deg)" in err and "quaternion" in err
     assert res["mm"]["noise_model"] == "given"
     assert np.allclose(res["mm"]["Z"], res["m"]["Z"], atol=1e-6)
     assert set(res["mm"]["frames"]["Z"]) == {"matrix", "xyzabc", "quaternion_wxyz", "std", "cov"}
