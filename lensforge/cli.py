@@ -20,6 +20,7 @@ import sys
 
 import typer
 
+from .commands.bench import calibrate_cmd, estimate_cmd, plan_cmd, simulate_session_cmd
 from .commands.demo import demo
 from .commands.design import compare, design, plot
 from .commands.estimate import estimate_study, scenario
@@ -39,9 +40,13 @@ _COMMANDS = {  # command name -> function, in the order of ``lensforge --help``
     "plot": plot,
     "compare": compare,
     "export": export_cmd,
+    "estimate": estimate_cmd,
     "estimate-study": estimate_study,
     "scenario": scenario,
     "handeye": handeye_cmd,
+    "plan": plan_cmd,
+    "calibrate": calibrate_cmd,
+    "simulate-session": simulate_session_cmd,
     "study": study_cmd,
     "budget": budget_cmd,
     "demo": demo,
