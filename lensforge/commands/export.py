@@ -9,7 +9,37 @@ import typer
 
 from ..errors import ConfigError
 from ..manufacturing.features import FeatureSpec
-from ._common import emit_json, info, load_lens_arg
+from ._common import emit_json, info, load_bench_arg, load_lens_arg
+
+
+class _StepProgress:
+    """A rich progress bar over named steps on stderr; yields the callback that starts each step."""
+
+    def __init__(self, steps: list[str], enabled: bool = True):
+        self.steps, self.enabled, self._p, self._task = list(steps), enabled, None, None
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._p = Progress(TextColumn("export: {task.description:<16}"), BarColumn(), MofNCompleteColumn(),
+                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+            self._p.start()
+            self._task = self._p.add_task(self.steps[0] if self.steps else "", total=len(self.steps))
+        return self._tick
+
+    def _tick(self, name: str) -> None:
+        if self._p is None:
+            return
+        done = self.steps.index(name) if name in self.steps else 0
+        self._p.update(self._task, description=name, completed=done)
+
+    def __exit__(self, *exc):
+        if self._p is not None:
+            self._p.update(self._task, completed=len(self.steps))
+            self._p.stop()
+        return False
 
 
 def export_cmd(
@@ -24,9 +54,18 @@ def export_cmd(
     chord_tol: float = typer.Option(0.001, "--chord-tol", help="Largest mesh deviation from the surfaces, mm."),
     edge_diameter: float = typer.Option(None, "--edge-diameter",
                                         help="Override the mechanical edge diameter, mm (room for features)."),
+    flange: float = typer.Option(1.0, "--flange",
+                                 help="Mechanical edge beyond the clear aperture, mm radial (room for --fiducial "
+                                      "and --tab; 0 = edge at the clear aperture)."),
+    orient: bool = typer.Option(False, "--orient",
+                                help="Write the STL/3MF in the suggested print orientation (build direction +z)."),
+    optiland: bool = typer.Option(False, "--optiland",
+                                  help="Also write NAME.optiland.json (bench model for optiland) and "
+                                       "NAME.opticstudio.txt (OpticStudio prescription)."),
     out: Path = typer.Option(Path("exports"), "-o", "--out", help="Output folder."),
     name: str = typer.Option(None, "--name", help="File stem (default: the design's name)."),
     slicer: bool = typer.Option(True, "--slicer/--no-slicer", help="Check the STL with PrusaSlicer if present."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="No progress bar."),
     json_out: bool = typer.Option(False, "--json", help="Machine-readable report on stdout."),
 ):
     """Export a lens as printable files and report whether the Form 2 can print it."""
@@ -36,7 +75,9 @@ def export_cmd(
         raise ConfigError(f"--chord-tol: must be a positive number of mm, got {chord_tol}")
     if fiducial_kind not in ("flat", "notch"):
         raise ConfigError(f"--fiducial-kind: must be 'flat' or 'notch', got {fiducial_kind!r}")
-    lens, _ = load_lens_arg(design)
+    if not math.isfinite(flange) or flange < 0:
+        raise ConfigError(f"--flange: must be a width >= 0 mm, got {flange}")
+    lens, data = load_lens_arg(design)
     if edge_diameter is not None:
         if not math.isfinite(edge_diameter) or edge_diameter < lens.aperture:
             raise ConfigError(f"--edge-diameter: must be >= the clear aperture {lens.aperture} mm, "
@@ -46,10 +87,14 @@ def export_cmd(
         stl = step = True
     stem = name or Path(design).stem.replace(" ", "_")
     spec = FeatureSpec(fiducial=fiducial_kind if fiducial else None, tab=tab)
-    from ..manufacturing.report import export_lens  # imports OCP (~0.8 s): only exports pay it
+    from ..manufacturing.report import export_lens, export_steps  # imports OCP (~0.8 s): only exports pay it
 
-    rep = export_lens(lens, out, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
-                      chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf)
+    steps = export_steps(stl, step, threemf, optiland, slicer)
+    with _StepProgress(steps, enabled=not no_progress and not json_out) as tick:
+        rep = export_lens(lens, out, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
+                          chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf,
+                          flange_mm=None if edge_diameter is not None else flange, orient=orient,
+                          optiland=optiland, bench=load_bench_arg(None, data), progress=tick)
     info(rep.summary())
     if json_out:
         emit_json(rep.to_dict())

@@ -7,7 +7,9 @@ from here), ``bench`` (``Bench.to_dict()``), ``criterion``, ``weights``,
 ``constraints``, ``feasibility``, ``metrics`` (rank, kappa, sigma_min, J, D, A, CRLB
 std per DOF in um / urad, ...), ``method``, ``seed``, ``settings``, ``start``,
 ``history`` (best cost per iteration, thinned to at most 200 rows), ``n_evals``,
-``wall_time_s``, ``lensforge_version``; optional ``robust`` (present only for a
+``wall_time_s``, ``lensforge_version``, ``conventions`` (written for other tools and
+ignored on reading: Zernike order and normalisation, coefficient units, the design
+wavelength and the glass index there; see ``lensforge.optics.lens.lens_conventions``); optional ``robust`` (present only for a
 tolerance-robust design: ``tolerances`` in the TOML layout, ``n_samples``, ``seed``,
 ``statistic``, ``criterion``, and the returned lens's robust ``cost``, ``mean``,
 ``nominal``, ``n_failed`` and per-draw ``values``). Files without it are nominal
@@ -27,7 +29,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..fileio import read_json, write_atomic
 from ..optics.bench import Bench
-from ..optics.lens import Lens
+from ..optics.lens import Lens, lens_conventions
 
 __all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
 
@@ -163,6 +165,8 @@ class Design:
             "n_evals": int(self.n_evals),
             "wall_time_s": float(self.wall_time_s),
             "lensforge_version": self.lensforge_version,
+            # optional, written for other tools, ignored on reading (recomputed from lens and bench)
+            "conventions": lens_conventions(self.lens, self.bench.laser.wavelength_nm),
         }
         if self.robust is not None:
             d["robust"] = copy.deepcopy(self.robust)

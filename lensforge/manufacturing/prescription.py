@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import LensforgeError
 from ..fileio import json_default, write_atomic
 from ..optics.bench import Bench
-from ..optics.lens import Lens
+from ..optics.lens import Lens, lens_conventions
 from ..optics.surfaces import (Conic, ExtendedPolynomial, Freeform, Surface, ZernikeSag,
                                extended_monomial_exponents)
 
@@ -41,25 +41,6 @@ __all__ = ["lens_conventions", "optiland_model", "write_optiland", "opticstudio_
            "format_prescription", "write_prescription", "OPTILAND_NEWTON_TOL_MM"]
 
 OPTILAND_NEWTON_TOL_MM = 1e-12  # optiland's Newton-Raphson intersection tolerance in the written file
-
-
-def lens_conventions(lens: Lens, wavelength_nm: float) -> dict:
-    """What another tool needs to read this lens's numbers (JSON-ready)."""
-    return {
-        "length_unit": "mm",
-        "sag_coefficient_units": "mm (Zernike and extended-polynomial coefficients multiply "
-                                 "dimensionless polynomials of x/R_n, y/R_n; even aspheric "
-                                 "alpha_i in mm^(1-2i); polynomial zeta_i, gamma_i in mm^(1-i))",
-        "zernike_order": "noll",
-        "zernike_first_index": 1,
-        "zernike_normalisation": "rms (Noll): Z_j = sqrt(2 (n+1)/(1+delta_m0)) R_n^|m|(rho) cos/sin(|m| phi)",
-        "zernike_sign": "even Noll j: cos(m phi); odd: sin(m phi)",
-        "wavefront_zernike_units": "um of wavefront (OPD), Noll order, RMS-normalised",
-        "design_wavelength_nm": float(wavelength_nm),
-        "index_at_design_wavelength": float(lens.index(wavelength_nm)),
-        "material": lens.material if isinstance(lens.material, str) else lens.material.name,
-        "index_offset": float(lens.index_offset),
-    }
 
 
 # --------------------------------------------------------------------------- canonical helpers

@@ -18,7 +18,7 @@ from ..fileio import read_json
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
-__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens"]
+__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens", "lens_conventions"]
 
 
 def polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
@@ -156,6 +156,25 @@ class Lens:
 
     def replace(self, **changes) -> "Lens":
         return replace(self, **changes)
+
+
+def lens_conventions(lens: Lens, wavelength_nm: float) -> dict:
+    """What another tool needs to read this lens's numbers (JSON-ready)."""
+    return {
+        "length_unit": "mm",
+        "sag_coefficient_units": "mm (Zernike and extended-polynomial coefficients multiply "
+                                 "dimensionless polynomials of x/R_n, y/R_n; even aspheric "
+                                 "alpha_i in mm^(1-2i); polynomial zeta_i, gamma_i in mm^(1-i))",
+        "zernike_order": "noll",
+        "zernike_first_index": 1,
+        "zernike_normalisation": "rms (Noll): Z_j = sqrt(2 (n+1)/(1+delta_m0)) R_n^|m|(rho) cos/sin(|m| phi)",
+        "zernike_sign": "even Noll j: cos(m phi); odd: sin(m phi)",
+        "wavefront_zernike_units": "um of wavefront (OPD), Noll order, RMS-normalised",
+        "design_wavelength_nm": float(wavelength_nm),
+        "index_at_design_wavelength": float(lens.index(wavelength_nm)),
+        "material": lens.material if isinstance(lens.material, str) else lens.material.name,
+        "index_offset": float(lens.index_offset),
+    }
 
 
 # ---------------------------------------------------------------------------
