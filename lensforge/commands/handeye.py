@@ -80,6 +80,7 @@ def handeye_cmd(
     allow_degenerate: bool = typer.Option(
         False, "--allow-degenerate",
         help="report degenerate motion as observable=false instead of failing"),
+    plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
     kw = load_poses(poses)
@@ -97,5 +98,10 @@ def handeye_cmd(
          f"1-sigma {np.array2string(res.std_X[:3] * 1e3, precision=2)} um")
     for w in res.warnings:
         info(f"warning: {w}")
+    if plot is not None:
+        from ..plots import plot_handeye_residuals, save_figure
+
+        title = f"{Path(poses).name}: hand-eye residuals per pose ({res.method}, chi2/dof {res.chi2_dof:.3g})"
+        info(f"wrote {save_figure(plot_handeye_residuals(res.residuals, res.residual_chi2, title), plot)}")
     if json_out:
         emit_json(res.to_dict())

@@ -62,6 +62,7 @@ def study_cmd(
     d["tolerances"] = res.config["tolerances"]
     _write_json(out / "summary.json", d)
     plot_error_histograms(res.rot_err_deg, res.trans_err_mm, out / "errors.png", target_deg, target_mm,
+                          summary=res.summary,
                           title=f"{design}: Z error over {res.n_lenses} as-built lenses")
     s = res.summary
     info(f"{s['n_ok']} of {s['n_lenses']} calibrations succeeded ({res.stats.n_resumed} resumed, "
