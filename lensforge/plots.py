@@ -8,10 +8,18 @@ Units are in every label: sag in mm, Zernike response in um of wavefront per 1 m
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from os import PathLike
+
 import io
 from pathlib import Path
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .design.design_file import Design
+    from .optics.lens import Lens
 
 __all__ = ["new_figure", "save_figure", "plot_singular_values", "sag_departure", "plot_sag_maps",
            "plot_zernike_response", "working_range_poses", "beam_footprint", "plot_beam_footprint",
@@ -411,7 +419,7 @@ def plot_handeye_residuals(residuals, residual_chi2=None, title: str = "Hand-eye
     return fig
 
 
-def design_plots(design, out_dir, stem: str | None = None) -> list[Path]:
+def design_plots(design: "Design | Lens", out_dir: str | PathLike[str], stem: str | None = None) -> list[Path]:
     """Write the PNGs of a design (or lens) into out_dir: singular values, sag maps with
     the lit area, Zernike response, beam footprint over the working range, lenslet slope
     field, dimensioned cross-section and (for a design file) the convergence history.

@@ -33,6 +33,8 @@ one joint linear system).
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 import warnings as _warnings
 from dataclasses import dataclass, field
 
@@ -524,7 +526,8 @@ def _refine(A, B, X0, Z0, Wh, max_nfev):
     return X0 @ pose_to_matrix(sol.x[:6]), Z0 @ pose_to_matrix(sol.x[6:]), sol
 
 
-def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degenerate: str = "raise",
+def solve_handeye(A: ArrayLike, B: ArrayLike, method: str = "ml", sigma: tuple[float, float] | None = None,
+                  cov_B: ArrayLike | None = None, *, on_degenerate: str = "raise",
                   max_outer: int = 4, max_nfev: int = 2000) -> HandEyeResult:
     """Solve A_i X = Z B_i for X = ^E T_O and Z = ^W T_S.
 

@@ -41,6 +41,9 @@ Zernike coefficients um.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+from typing import Any
+
 import warnings
 from dataclasses import dataclass, field
 
@@ -413,7 +416,8 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
                         n_evals=prob.n_evals, message=message, method=method, unobservable=unobs, x0=x0)
 
 
-def estimate_pose(bench: Bench, lens: Lens, z_measured, x0=None, method: str = "lm", **options) -> PoseEstimate:
+def estimate_pose(bench: Bench, lens: Lens, z_measured: ArrayLike, x0: ArrayLike | None = None, method: str = "lm",
+                  **options: Any) -> PoseEstimate:
     """Estimate the lens pose (mm, rad; relative to nominal) from measured Zernikes (um).
 
     method: "lm" (default; least squares on noise-whitened residuals, covariance

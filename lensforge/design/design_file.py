@@ -19,6 +19,10 @@ design whose ``to_dict()`` equals the original's.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from os import PathLike
+
 import copy
 import json
 from dataclasses import dataclass, field
@@ -30,6 +34,10 @@ from ..errors import ConfigError
 from ..fileio import read_json, write_atomic
 from ..optics.bench import Bench
 from ..optics.lens import Lens, lens_conventions
+
+if TYPE_CHECKING:
+    from ..optics.sensitivity import Metrics
+    from .robust import RobustSpec
 
 __all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
 
@@ -123,13 +131,13 @@ class Design:
     def rank(self):
         return self.metrics.get("rank")
 
-    def compute_metrics(self, bench: Bench | None = None):
+    def compute_metrics(self, bench: Bench | None = None) -> "Metrics":
         """Fresh ``Metrics`` of the lens on ``bench`` (default: the design's own bench)."""
         from ..optics.sensitivity import metrics
 
         return metrics(bench or self.bench, self.lens, weights=self.weights)
 
-    def robust_spec(self):
+    def robust_spec(self) -> "RobustSpec | None":
         """The :class:`~lensforge.design.robust.RobustSpec` this design was optimised with (None if nominal)."""
         if self.robust is None:
             return None
@@ -209,13 +217,13 @@ class Design:
         )
 
 
-def save_design(design: Design, path) -> Path:
+def save_design(design: Design, path: str | PathLike[str]) -> Path:
     """Write the design as JSON (atomically); returns the path."""
     text = json.dumps(design.to_dict(), indent=2, allow_nan=False)
     return write_atomic(path, text + "\n")
 
 
-def load_design(path) -> Design:
+def load_design(path: str | PathLike[str]) -> Design:
     """Read a design JSON file written by ``save_design``."""
     p = Path(path)
     return Design.from_dict(read_json(p, "design file"), where=f"{p.name}")

@@ -13,6 +13,8 @@ Lens frame {O}, mm. The STL carries the lens in {O}: optical axis along +z.
 
 from __future__ import annotations
 
+from os import PathLike
+
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -384,7 +386,7 @@ def features_from_args(fiducial=False, tab=False, **kw) -> FeatureSpec:
     return FeatureSpec(fiducial=kind, tab=bool(tab), **kw)
 
 
-def export_stl(lens: Lens, path, chord_tol_mm: float = 1e-3, fiducial: bool | str = False, tab: bool = False,
+def export_stl(lens: Lens, path: str | PathLike[str], chord_tol_mm: float = 1e-3, fiducial: bool | str = False, tab: bool = False,
                features: FeatureSpec | None = None, n_rings: int | None = None) -> StlExport:
     """Write the lens as a binary STL (atomically) after validating the mesh.
 

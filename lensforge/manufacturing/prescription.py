@@ -24,6 +24,8 @@ file's ``lensforge`` block. Lengths in mm, wavelength in um (optiland's unit).
 
 from __future__ import annotations
 
+from os import PathLike
+
 import json
 import math
 from pathlib import Path
@@ -170,7 +172,7 @@ def optiland_model(lens: Lens, bench: Bench, gap_mm: float = 5.0) -> dict:
     }
 
 
-def write_optiland(lens: Lens, bench: Bench, path, gap_mm: float = 5.0) -> Path:
+def write_optiland(lens: Lens, bench: Bench, path: str | PathLike[str], gap_mm: float = 5.0) -> Path:
     """Write ``optiland_model`` as optiland JSON (atomically; planes carry ``Infinity``
     radii as optiland itself writes them)."""
     text = json.dumps(optiland_model(lens, bench, gap_mm), indent=2, default=json_default)
@@ -278,6 +280,6 @@ def format_prescription(p: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_prescription(lens: Lens, bench: Bench, path) -> Path:
+def write_prescription(lens: Lens, bench: Bench, path: str | PathLike[str]) -> Path:
     """Write the OpticStudio prescription table as text (atomically)."""
     return write_atomic(path, format_prescription(opticstudio_prescription(lens, bench)))

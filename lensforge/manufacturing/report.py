@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from os import PathLike
+
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -164,7 +166,7 @@ def export_steps(stl: bool, step: bool, threemf: bool = False, optiland: bool = 
     return steps
 
 
-def export_lens(lens: Lens, out_dir, stem: str, stl: bool = True, step: bool = True,
+def export_lens(lens: Lens, out_dir: str | PathLike[str], stem: str, stl: bool = True, step: bool = True,
                 features: FeatureSpec | None = None, layer_mm: float = 0.025, chord_tol_mm: float = 1e-3,
                 run_slicer: bool = True, profile: PrinterProfile = FORM2,
                 write_report: bool = True, threemf: bool = False, flange_mm: float | None = DEFAULT_FLANGE_MM,

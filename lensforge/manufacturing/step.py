@@ -14,6 +14,8 @@ Lens frame {O}, mm. The STL never goes through OCC (see mesh.py).
 
 from __future__ import annotations
 
+from os import PathLike
+
 import tempfile
 import time
 from contextlib import contextmanager
@@ -347,7 +349,7 @@ class StepExport:
         return d
 
 
-def export_step(lens: Lens, path, fiducial: bool | str = False, tab: bool = False,
+def export_step(lens: Lens, path: str | PathLike[str], fiducial: bool | str = False, tab: bool = False,
                 features: FeatureSpec | None = None, deviation_goal_mm: float = 1e-5,
                 grid: int | None = None) -> StepExport:
     """Write the lens as an AP214 STEP solid (atomically) and verify it by reading it back.

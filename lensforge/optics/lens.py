@@ -7,6 +7,9 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+from os import PathLike
+
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -74,7 +77,7 @@ class Lens:
         return self._material
 
     # --- geometry -----------------------------------------------------------
-    def thickness_at(self, x, y):
+    def thickness_at(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Axial glass thickness (mm) at lens-frame (x, y) in mm."""
         return self.thickness + self.back.sag(x, y) - self.front.sag(x, y)
 
@@ -242,7 +245,7 @@ def paper_lens(name: str) -> Lens:
     return Lens(**PAPER_LENSES[key]).validate()
 
 
-def load_lens(source) -> tuple[Lens, dict]:
+def load_lens(source: str | PathLike[str]) -> tuple[Lens, dict]:
     """A lens from a paper lens name, a design JSON file (lens under key "lens") or a
     lens JSON file (``Lens.to_dict()``). Returns (validated lens, parsed JSON or {})."""
     key = str(source).lower().replace("-", "_")

@@ -11,6 +11,8 @@ bound (S^T R^-1 S)^-1 on the pose covariance.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,7 +52,7 @@ def sensitivity_from_model(model: ForwardModel, pose=None, raise_invalid: bool =
     return S, base.z[0], res
 
 
-def sensitivity(bench: Bench, lens: Lens, pose=None) -> np.ndarray:
+def sensitivity(bench: Bench, lens: Lens, pose: ArrayLike | None = None) -> np.ndarray:
     """Sensitivity matrix S = dz/dx (m x 6): um per mm (tx, ty, tz), um per rad (rx, ry, rz)."""
     return sensitivity_from_model(ForwardModel(bench, lens), pose)[0]
 
@@ -149,7 +151,8 @@ def metrics_from_S(S: np.ndarray, R: np.ndarray, bench: Bench, z0=None, weights=
     )
 
 
-def metrics(bench: Bench, lens: Lens, pose=None, weights=(1.0, 1.0)) -> Metrics:
+def metrics(bench: Bench, lens: Lens, pose: ArrayLike | None = None,
+            weights: tuple[float, float] = (1.0, 1.0)) -> Metrics:
     """Rank, kappa, sigma_min, J and the Cramer-Rao bound of a lens on a bench."""
     model = ForwardModel(bench, lens)
     S, z0, _ = sensitivity_from_model(model, pose)
