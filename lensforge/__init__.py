@@ -28,6 +28,7 @@ _EXPORTS = {
     "paper_lens": "lensforge.optics.lens",
     "PAPER_LENSES": "lensforge.optics.lens",
     "load_lens": "lensforge.optics.lens",
+    "resolve_lens": "lensforge.optics.lens",
     "lens_conventions": "lensforge.optics.lens",
     "Conic": "lensforge.optics.surfaces",
     "Polynomial": "lensforge.optics.surfaces",
@@ -105,7 +106,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from .manufacturing.step import export_step
     from .manufacturing.tolerances import Tolerances, load_tolerances, sample_as_built
     from .optics.bench import Bench, load_bench, save_bench
-    from .optics.lens import PAPER_LENSES, Lens, lens_conventions, load_lens, paper_lens
+    from .optics.lens import PAPER_LENSES, Lens, lens_conventions, load_lens, paper_lens, resolve_lens
     from .optics.materials import load_material
     from .optics.pose import DOF_NAMES, invert_poses, matrix_to_pose, pose_to_matrix, transform_error
     from .optics.sensitivity import Metrics, metrics, sensitivity

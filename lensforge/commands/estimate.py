@@ -9,11 +9,13 @@ from typing import List, Optional
 
 import typer
 
+from ..calibration.pose_estimation import ESTIMATORS
 from ..errors import ConfigError
 from ..fileio import write_atomic
+from ..optics.lens import resolve_lens
 from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
 from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
-from ._common import emit_json, info, load_bench_arg, load_lens_arg
+from ._common import emit_json, info, load_bench_arg
 
 
 def estimate_study(
@@ -30,15 +32,16 @@ def estimate_study(
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
     # ConfigError, not typer.Exit: under main()'s standalone_mode=False a typer.Exit
     # comes back as a return value and the exit status is lost
-    if method not in ("lm", "ukf"):
-        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if trials < 1 or ukf_repeats < 1:
         raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
     results = []
     for arg in lenses:
-        lens, data = load_lens_arg(arg)
-        b = load_bench_arg(bench, data)
+        r = resolve_lens(arg)
+        lens = r.lens
+        b = load_bench_arg(bench, r)
         name = Path(arg).stem if Path(arg).suffix else arg
         info(f"{name}: {trials} estimates ({method}) ...")
         results.append(study_lens(b, lens, name, trials, method, seed, **opts))
@@ -55,7 +58,7 @@ def scenario(
     lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
     design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
     runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: lm or ukf"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS)),
     seed: int = typer.Option(0, "--seed", help="random seed"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
@@ -66,12 +69,13 @@ def scenario(
     solved with the estimator covariances; Z error vs its predicted bound."""
     if design not in ("random", "oed", "both"):
         raise ConfigError(f"--poses: {design!r} is not random, oed or both")
-    if method not in ("lm", "ukf"):
-        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if runs < 1:
         raise ConfigError(f"--runs: must be >= 1, got {runs}")
-    lens_obj, data = load_lens_arg(lens)
-    b = load_bench_arg(bench, data)
+    r = resolve_lens(lens)
+    lens_obj = r.lens
+    b = load_bench_arg(bench, r)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)
     info(f"scenario: {runs} calibrations x {', '.join(designs)} poses ...")

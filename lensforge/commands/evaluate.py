@@ -8,35 +8,39 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from ..optics.lens import resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
-from ._common import emit_json, load_bench_arg, load_lens_arg
+from ._common import emit_json, load_bench_arg
 
 
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
     """Metrics rows (JSON-ready) for each lens argument (paper name or design file)."""
     rows = []
     for name in names:
-        lens, data = load_lens_arg(name)
-        bench = load_bench_arg(bench_path, data)
+        r = resolve_lens(name)
+        lens = r.lens
+        bench = load_bench_arg(bench_path, r)
         m = metrics(bench, lens)
         rows.append({"lens": name, "description": lens.name, **m.to_dict()})
     return rows
 
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
-    """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF)."""
+    """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF, the
+    DOF unobservable by DESIGN.md's statistical rule)."""
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 
     t = Table(title=title)
-    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)]:
+    for col in (["lens", "rank", "kappa", "sigma_min", "J"]
+                + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)] + ["unobservable"]):
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
         std = r["crlb_std"]
         keys = [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]
         t.add_row(r["lens"], str(r["rank"]), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
-                  *[fmt(std[k]) for k in keys])
+                  *[fmt(std[k]) for k in keys], ", ".join(r.get("unobservable") or []) or "-")
     return t
 
 

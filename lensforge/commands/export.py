@@ -9,7 +9,8 @@ import typer
 
 from ..errors import ConfigError
 from ..manufacturing.features import FeatureSpec
-from ._common import emit_json, info, load_bench_arg, load_lens_arg
+from ..optics.lens import resolve_lens
+from ._common import emit_json, info
 
 
 class _StepProgress:
@@ -77,7 +78,8 @@ def export_cmd(
         raise ConfigError(f"--fiducial-kind: must be 'flat' or 'notch', got {fiducial_kind!r}")
     if not math.isfinite(flange) or flange < 0:
         raise ConfigError(f"--flange: must be a width >= 0 mm, got {flange}")
-    lens, data = load_lens_arg(design)
+    resolved = resolve_lens(design)
+    lens = resolved.lens
     if edge_diameter is not None:
         if not math.isfinite(edge_diameter) or edge_diameter < lens.aperture:
             raise ConfigError(f"--edge-diameter: must be >= the clear aperture {lens.aperture} mm, "
@@ -94,7 +96,7 @@ def export_cmd(
         rep = export_lens(lens, out, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
                           chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf,
                           flange_mm=None if edge_diameter is not None else flange, orient=orient,
-                          optiland=optiland, bench=load_bench_arg(None, data), progress=tick)
+                          optiland=optiland, bench=resolved.bench_or(), progress=tick)
     info(rep.summary())
     if json_out:
         emit_json(rep.to_dict())

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from ..calibration.handeye import solve_handeye
+from ..calibration.handeye import OBS_LIMITS, solve_handeye
 from ..errors import ConfigError
 from ..fileio import read_json
 from ._common import emit_json, info
@@ -80,6 +80,11 @@ def handeye_cmd(
     allow_degenerate: bool = typer.Option(
         False, "--allow-degenerate",
         help="report degenerate motion as observable=false instead of failing"),
+    obs_limit_mm: float = typer.Option(OBS_LIMITS[0], "--obs-limit-mm",
+                                       help="predicted 1-sigma (mm) beyond which a direction is reported "
+                                            "unobservable (solved and warned, never refused)"),
+    obs_limit_rad: float = typer.Option(OBS_LIMITS[1], "--obs-limit-rad",
+                                        help="the same for rotations (rad)"),
     plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
@@ -87,7 +92,8 @@ def handeye_cmd(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res = solve_handeye(kw["A"], kw["B"], method=method, sigma=kw["sigma"], cov_B=kw["cov_B"],
-                            on_degenerate="warn" if allow_degenerate else "raise")
+                            on_degenerate="warn" if allow_degenerate else "raise",
+                            obs_limits=(obs_limit_mm, obs_limit_rad))
     sz = res.std_Z
     info(f"hand-eye ({res.method}, {res.residuals.shape[0]} poses, noise model {res.noise_model}): "
          f"chi2/dof = {res.chi2_dof:.3g}")

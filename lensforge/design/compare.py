@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import ConfigError, LensforgeError
 from ..optics.bench import Bench
-from ..optics.lens import PAPER_LENSES, Lens, paper_lens
+from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
 from .constraints import Constraints, check_design
@@ -41,15 +41,11 @@ def resolve_entry(arg) -> CompareEntry:
         return CompareEntry(f"{arg.model} {arg.method} seed {arg.seed}", arg.lens, arg)
     if isinstance(arg, Lens):
         return CompareEntry(arg.name or "lens", arg)
-    s = str(arg)
-    key = s.split(":", 1)[1] if s.lower().startswith("paper:") else s
-    key = key.lower().replace("-", "_")
-    if key in PAPER_LENSES:
-        return CompareEntry(f"paper {key}", paper_lens(key))
-    if s.lower().startswith("paper:"):
-        raise ConfigError(f"compare: unknown paper lens {s!r}; use paper:{{{','.join(sorted(PAPER_LENSES))}}}")
-    d = load_design(s)
-    return CompareEntry(f"{d.model} {d.method} seed {d.seed}", d.lens, d)
+    r = resolve_lens(arg)
+    if "model" in r.data:  # a design file: keep its history and settings
+        d = load_design(arg)
+        return CompareEntry(f"{d.model} {d.method} seed {d.seed}", d.lens, d)
+    return CompareEntry(r.label, r.lens)
 
 
 def compare_rows(entries, bench: Bench | None = None, constraints: Constraints | None = None) -> list[dict]:
