@@ -25,10 +25,10 @@ _EXPORTS = {
     "load_bench": "lensforge.optics.bench",
     "save_bench": "lensforge.optics.bench",
     "Lens": "lensforge.optics.lens",
+    "resolve_lens": "lensforge.optics.lens",
     "paper_lens": "lensforge.optics.lens",
     "PAPER_LENSES": "lensforge.optics.lens",
     "load_lens": "lensforge.optics.lens",
-    "resolve_lens": "lensforge.optics.lens",
     "lens_conventions": "lensforge.optics.lens",
     "Conic": "lensforge.optics.surfaces",
     "Polynomial": "lensforge.optics.surfaces",
@@ -41,6 +41,8 @@ _EXPORTS = {
     "sensitivity": "lensforge.optics.sensitivity",
     "metrics": "lensforge.optics.sensitivity",
     "Metrics": "lensforge.optics.sensitivity",
+    "jacobian": "lensforge.optics.sensitivity",
+    "observability": "lensforge.optics.sensitivity",
     "trace_rays": "lensforge.optics.trace",
     # Zernike index and vector conversions (Noll inside; OSA/ANSI and Thorlabs at the edges)
     "noll_to_nm": "lensforge.optics.zernike",
@@ -79,6 +81,7 @@ _EXPORTS = {
     "load_tolerances": "lensforge.manufacturing.tolerances",
     # calibration
     "estimate_pose": "lensforge.calibration.pose_estimation",
+    "estimate_poses_batch": "lensforge.calibration.pose_estimation",
     "solve_handeye": "lensforge.calibration.handeye",
     "HandEyeResult": "lensforge.calibration.handeye",
     # verification (simulation of the calibration)
@@ -94,7 +97,7 @@ __all__ = sorted(_EXPORTS) + ["__version__"]
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from .calibration.handeye import HandEyeResult, solve_handeye
-    from .calibration.pose_estimation import estimate_pose
+    from .calibration.pose_estimation import estimate_pose, estimate_poses_batch
     from .design.design_file import Design, load_design, save_design
     from .design.optimize import optimize_design
     from .errors import ConfigError, LensforgeError
@@ -109,7 +112,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from .optics.lens import PAPER_LENSES, Lens, lens_conventions, load_lens, paper_lens, resolve_lens
     from .optics.materials import load_material
     from .optics.pose import DOF_NAMES, invert_poses, matrix_to_pose, pose_to_matrix, transform_error
-    from .optics.sensitivity import Metrics, metrics, sensitivity
+    from .optics.sensitivity import Metrics, jacobian, metrics, observability, sensitivity
     from .optics.shack_hartmann import ForwardModel, measure
     from .optics.surfaces import Conic, ExtendedPolynomial, Freeform, Polynomial, ZernikeSag
     from .optics.trace import trace_rays

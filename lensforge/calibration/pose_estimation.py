@@ -104,7 +104,8 @@ def _whiten_jac(Li, J):
     return _whiten(Li, J.transpose(0, 2, 1)).transpose(0, 2, 1)
 
 
-def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int = 40, xtol: float = 1e-10,
+def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLike, *, max_iter: int = 40,
+                         xtol: float = 1e-10,
                          ftol: float = 1e-10, fast_start: bool = True) -> BatchPoseEstimate:
     """Whitened least-squares pose estimates for P measurements at once (LM, batched).
 
@@ -489,8 +490,7 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
     if weak:
         warnings.warn(f"pose DOF {', '.join(weak)}: predicted 1-sigma exceeds the bench's pose scale "
                       "(estimated, but barely measured)", WeakObservabilityWarning, stacklevel=3)
-    _, _, Vt = np.linalg.svd(Jw0 * D)
-    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], basis=Vt[:ob.rank].T, null=null, D=D)
+    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], basis=ob.basis, null=null, D=D)
     x, cov, converged, message, iterations, n_evals = ESTIMATORS[method](prob, jac=jac, **options)
     n_evals += 1 + (12 if jac == "central" else 6)
     out = _in_range(bench, x)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ConfigError, LensforgeError
+from ..errors import LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES
