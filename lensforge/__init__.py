@@ -84,8 +84,15 @@ _EXPORTS = {
     "estimate_poses_batch": "lensforge.calibration.pose_estimation",
     "solve_handeye": "lensforge.calibration.handeye",
     "HandEyeResult": "lensforge.calibration.handeye",
+    "plan": "lensforge.calibration.session",
+    "calibrate": "lensforge.calibration.session",
+    "estimate": "lensforge.calibration.session",
+    "load_robot": "lensforge.calibration.robot",
+    "read_robot_poses": "lensforge.calibration.formats",
+    "read_wfs": "lensforge.calibration.formats",
     # verification (simulation of the calibration)
     "verify": "lensforge.verification.study",
+    "simulate_session": "lensforge.verification.session_sim",
     # plots
     "design_plots": "lensforge.plots",
     # errors

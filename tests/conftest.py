@@ -43,3 +43,19 @@ def run_cli(*args, cwd=None):
     if r.returncode == 0 and "--json" in args and args and args[0] in COMMANDS:
         check_json_output(args[0], r.stdout)
     return r
+
+
+def run_cli_inprocess(monkeypatch, capsys, *args):
+    """Run the CLI in this process (shares traced kernels): (exit code, stdout, stderr)."""
+    import sys
+
+    from lensforge.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["lensforge", *map(str, args)])
+    code = 0
+    try:
+        main()
+    except SystemExit as e:
+        code = e.code or 0
+    out = capsys.readouterr()
+    return code, out.out, out.err

@@ -15,10 +15,11 @@ from ..design.design_file import load_design, save_design
 from ..design.optimize import METHODS, optimize_design
 from ..design.robust import RobustSpec
 from ..errors import ConfigError
+from ..fileio import check_output, staged_dir
 from ..manufacturing.tolerances import load_tolerances
 from ..optics.lens import resolve_lens
 from ..plots import design_plots
-from ._common import emit_json, info, load_bench_arg
+from ._common import check_seed, emit_json, info, load_bench_arg
 
 
 def _weights(text: str) -> tuple[float, float]:
@@ -69,6 +70,9 @@ def design(
 
         spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
                           statistic=robust_statistic)
+    check_seed(seed)
+    check_seed(robust_seed, "--robust-seed")
+    check_output(out, folder=False, option="-o/--out")
     cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
                        range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable)
     d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
@@ -97,10 +101,11 @@ def plot(
 ):
     """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
     r = resolve_lens(design_file)
-    if "model" in r.data:  # a design file: its plots show the design's parameters too
-        paths = design_plots(load_design(design_file), out, stem=Path(design_file).stem)
-    else:
-        paths = design_plots(r.lens, out, stem=r.label.replace(" ", "_"))
+    obj, stem = ((load_design(design_file), Path(design_file).stem) if "model" in r.data  # a design file:
+                 else (r.lens, r.label.replace(" ", "_")))  # its plots show the design's parameters too
+    check_output(out, folder=True, need_mb=5)
+    with staged_dir(out) as st:  # the three PNGs appear together or not at all
+        paths = [st.final(p) for p in design_plots(obj, st.tmp, stem=stem)]
     if json_out:
         emit_json({"schema_version": 1, "files": [str(p) for p in paths]})
     else:

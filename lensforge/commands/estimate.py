@@ -11,11 +11,11 @@ import typer
 
 from ..calibration.pose_estimation import ESTIMATORS
 from ..errors import ConfigError
-from ..fileio import write_atomic
+from ..fileio import check_output, staged_dir, write_atomic
 from ..optics.lens import resolve_lens
 from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
 from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
-from ._common import emit_json, info, load_bench_arg
+from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg
 
 
 def estimate_study(
@@ -36,18 +36,24 @@ def estimate_study(
         raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if trials < 1 or ukf_repeats < 1:
         raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
+    check_seed(seed)
+    if trials > MAX_TRIALS:
+        raise ConfigError(f"--trials: {trials} is over the limit of {MAX_TRIALS} estimates per lens")
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
-    results = []
-    for arg in lenses:
+    loaded = []
+    for arg in lenses:  # every input validated before any work
         r = resolve_lens(arg)
-        lens = r.lens
-        b = load_bench_arg(bench, r)
+        loaded.append((arg, r.lens, load_bench_arg(bench, r)))
+    check_output(out, folder=True, need_mb=5)
+    results = []
+    for arg, lens, b in loaded:
         name = Path(arg).stem if Path(arg).suffix else arg
         info(f"{name}: {trials} estimates ({method}) ...")
         results.append(study_lens(b, lens, name, trials, method, seed, **opts))
     meta = {"method": method, "trials": trials, "seed": seed,
             **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
-    paths = save_study(results, out, **meta)
+    with staged_dir(out) as st:  # JSON, CSV and PNG together or not at all
+        paths = {k: st.final(v) for k, v in save_study(results, st.tmp, **meta).items()}
     if json_out:
         emit_json({**study_to_dict(results, **meta), "files": {k: str(v) for k, v in paths.items()}})
     else:
@@ -73,9 +79,13 @@ def scenario(
         raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if runs < 1:
         raise ConfigError(f"--runs: must be >= 1, got {runs}")
+    check_seed(seed)
+    if runs > MAX_TRIALS:
+        raise ConfigError(f"--runs: {runs} is over the limit of {MAX_TRIALS}")
     r = resolve_lens(lens)
     lens_obj = r.lens
     b = load_bench_arg(bench, r)
+    check_output(Path(out) / "scenario.json", folder=False)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)
     info(f"scenario: {runs} calibrations x {', '.join(designs)} poses ...")

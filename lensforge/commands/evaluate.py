@@ -11,19 +11,36 @@ from rich.table import Table
 from ..optics.lens import resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
+from ..optics.shack_hartmann import ForwardModel
 from ._common import emit_json, load_bench_arg
 
 
+_NO_METRICS = {"rank": None, "kappa": None, "sigma_min": None, "J": None, "unobservable": None,
+               "crlb_std": {k: None for k in [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]}}
+
+
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
-    """Metrics rows (JSON-ready) for each lens argument (paper name or design file)."""
+    """Metrics rows (JSON-ready) for each lens argument (paper name or design file).
+
+    Each row carries ``sensor_range`` at the nominal pose (ok, max_slope_mrad, lenslets_out, ...);
+    a lens out of the sensor's range gets null metrics (the sensor cannot measure it).
+    """
     rows = []
     for name in names:
         r = resolve_lens(name)
         lens = r.lens
         bench = load_bench_arg(bench_path, r)
-        m = metrics(bench, lens)
-        rows.append({"lens": name, "description": lens.name, **m.to_dict()})
+        sr = ForwardModel(bench, lens).sensor_range()  # nominal pose; metrics need it in range
+        m = metrics(bench, lens) if sr.ok else None
+        rows.append({"lens": name, "description": lens.name, **(m.to_dict() if m else _NO_METRICS),
+                     "sensor_range": sr.to_dict()})
     return rows
+
+
+def _range_text(sr: dict | None) -> str:
+    if sr is None:
+        return "-"
+    return ("ok" if sr["ok"] else f"OUT ({sr['lenslets_out']} lenslets)") + f", max {sr['max_slope_mrad']:.3g} mrad"
 
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
@@ -34,13 +51,15 @@ def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, n
 
     t = Table(title=title)
     for col in (["lens", "rank", "kappa", "sigma_min", "J"]
-                + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)] + ["unobservable"]):
+                + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)]
+                + ["unobservable", "sensor range"]):
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
         std = r["crlb_std"]
         keys = [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]
-        t.add_row(r["lens"], str(r["rank"]), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
-                  *[fmt(std[k]) for k in keys], ", ".join(r.get("unobservable") or []) or "-")
+        t.add_row(r["lens"], fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
+                  *[fmt(std[k]) for k in keys], ", ".join(r.get("unobservable") or []) or "-",
+                  _range_text(r.get("sensor_range")))
     return t
 
 

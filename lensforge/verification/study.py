@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -414,12 +415,9 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     ctx = make_context(lens, bench, tol, config, plan_seed)
     cfg = context_config(ctx, seed)
     chash = config_hash(cfg)
-    st = TrialStore.open(store, chash, cfg, resume=resume) if store is not None else None
-    try:
+    with (TrialStore.session(store, chash, cfg, resume=resume, n_trials=int(n_lenses)) if store is not None
+          else nullcontext()) as st:
         records, stats = run_trials(run_trial, ctx, int(n_lenses), int(seed), st, workers=workers,
                                     scheduler=scheduler, progress=progress, description="as-built lenses",
                                     client=client)
-    finally:
-        if st is not None:
-            st.close()
     return result_from_records(records, cfg, chash, store, stats, config)
