@@ -8,13 +8,23 @@ Units are in every label: sag in mm, Zernike response in um of wavefront per 1 m
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from os import PathLike
+
 import io
 from pathlib import Path
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from .design.design_file import Design
+    from .optics.lens import Lens
+
 __all__ = ["new_figure", "save_figure", "plot_singular_values", "sag_departure", "plot_sag_maps",
-           "plot_zernike_response", "design_plots"]
+           "plot_zernike_response", "working_range_poses", "beam_footprint", "plot_beam_footprint",
+           "plot_lenslet_field", "plot_cross_section", "plot_convergence", "plot_handeye_residuals",
+           "design_plots"]
 
 
 def new_figure(*args, **kwargs):
@@ -62,8 +72,12 @@ def sag_departure(surface, x, y, n_phi: int = 64):
     return z, z - ring.mean(axis=-1)
 
 
-def plot_sag_maps(lens, n: int = 121):
-    """Figure: sag of front and back surface and their departure from rotational symmetry (mm)."""
+def plot_sag_maps(lens, n: int = 121, lit=None):
+    """Figure: sag of front and back surface and their departure from rotational symmetry (mm).
+
+    lit: optional dict {"nominal": (K, 2) outline, "range": (K, 2) outline} of the beam
+    footprint on the front surface in {O} (mm), drawn on every map (see :func:`beam_footprint`).
+    """
     fig = new_figure(figsize=(10, 8.5), layout="constrained")
     a = 0.5 * lens.aperture
     g = np.linspace(-a, a, n)
@@ -79,6 +93,13 @@ def plot_sag_maps(lens, n: int = 121):
             ax.set_xlabel("x (mm)")
             ax.set_ylabel("y (mm)")
             fig.colorbar(im, ax=ax, shrink=0.8, label="mm")
+            if lit is not None:
+                for key, style, label in (("range", ":", "beam over the working range"),
+                                          ("nominal", "-", "beam 1/e^2, nominal pose")):
+                    if lit.get(key) is not None:
+                        ax.plot(*np.asarray(lit[key]).T, "k" + style, lw=1.2, label=label)
+                if row == 0 and col == 0:
+                    ax.legend(fontsize=7, loc="lower left", title="lit area (front surface)", title_fontsize=7)
     fig.suptitle(lens.name or "lens")
     return fig
 
@@ -94,36 +115,341 @@ def plot_zernike_response(S, modes, pose_scales, title: str = "Zernike response 
         ax = fig.add_subplot(2, 3, j + 1)
         ax.bar(np.arange(S.shape[0]), S[:, j] * scales[j], color="tab:blue")
         unit = f"{scales[j]:g} mm" if j < 3 else f"{np.degrees(scales[j]):g} deg"
-        ax.set_title(f"{DOF_NAMES[j]}: um per {unit}", fontsize=9)
+        ax.set_title(f"pose DOF {DOF_NAMES[j]}", fontsize=10)
         ax.set_xticks(np.arange(S.shape[0]))
-        ax.set_xticklabels([str(m) for m in modes], fontsize=6)
-        ax.set_xlabel("Noll j")
+        ax.set_xticklabels([str(m) for m in modes], fontsize=9)
+        ax.tick_params(axis="y", labelsize=9)
+        ax.set_xlabel("Zernike mode (Noll j)", fontsize=9)
+        ax.set_ylabel(f"um of wavefront per {unit}", fontsize=9)
+        ax.axhline(0.0, color="k", lw=0.6)
         ax.grid(True, axis="y", alpha=0.3)
     fig.suptitle(title)
     return fig
 
 
-def design_plots(design, out_dir, stem: str | None = None) -> list[Path]:
-    """Write the PNGs of a design (or lens) into out_dir: singular values, sag maps,
-    Zernike response. Returns the paths."""
+# --------------------------------------------------------------------------- beam on the lens
+
+def working_range_poses(range_mm: float, range_rad: float, n_random: int = 40, seed: int = 0) -> np.ndarray:
+    """Poses (P, 6) spanning the working range: nominal, +-range on each DOF alone, all
+    translation corners, and ``n_random`` uniform draws in the box (mm, rad)."""
+    scale = np.array([range_mm] * 3 + [range_rad] * 3, dtype=float)
+    poses = [np.zeros(6)]
+    for j in range(6):
+        for sgn in (-1.0, 1.0):
+            e = np.zeros(6)
+            e[j] = sgn * scale[j]
+            poses.append(e)
+    for corner in np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).reshape(3, -1).T:
+        poses.append(np.concatenate([corner * range_mm, np.zeros(3)]))
+    rng = np.random.default_rng(seed)
+    poses.extend(rng.uniform(-1.0, 1.0, (n_random, 6)) * scale)
+    return np.array(poses)
+
+
+def beam_footprint(bench, lens, poses, n_edge: int = 72, max_iter: int = 30) -> np.ndarray:
+    """Where the beam's 1/e^2 edge rays hit the front surface, in the lens frame {O}.
+
+    Rays start on the beam circle (diameter ``bench.laser.beam_diameter_mm``, centred on
+    the beam offset, direction from the beam slope) in {S}; each pose (P, 6) places the
+    lens (DESIGN.md), and Newton's method on the ray parameter finds the front-surface
+    hit. Returns (P, n_edge, 2) hit points (x, y) in {O} (mm); NaN where a ray misses.
+    """
+    from .optics.trace import pose_frames
+
+    poses = np.atleast_2d(np.asarray(poses, dtype=float))
+    R, t = pose_frames(bench, poses)
+    a = 0.5 * bench.laser.beam_diameter_mm
+    phi = np.linspace(0.0, 2 * np.pi, n_edge, endpoint=False)
+    ox, oy = bench.laser.offset_mm
+    sx, sy = bench.laser.slope
+    d_s = np.array([sx, sy, 1.0]) / np.sqrt(1.0 + sx * sx + sy * sy)
+    z_start = -bench.placement.distance_mm - 3.0 * lens.thickness - 10.0  # well before the lens
+    p_s = np.stack([ox + a * np.cos(phi), oy + a * np.sin(phi), np.full(n_edge, z_start)], axis=-1)
+    # into {O}: p_O = R^T (p_S - t)
+    p = np.einsum("pji,pnj->pni", R, p_s[None] - t[:, None, :])
+    d = np.einsum("pji,j->pi", R, d_s)[:, None, :]
+    cs = lens.front.canonical()
+    z0 = -0.5 * lens.thickness
+    s = (z0 - p[..., 2]) / d[..., 2]  # start at the vertex plane
+    for _ in range(max_iter):
+        x, y = p[..., 0] + s * d[..., 0], p[..., 1] + s * d[..., 1]
+        z, gx, gy = cs.sag_and_gradient(x, y)
+        g = p[..., 2] + s * d[..., 2] - (z0 + z)
+        dg = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
+        step = g / dg
+        s = s - step
+        if np.all(np.abs(step[np.isfinite(step)]) < 1e-12):
+            break
+    hit = np.stack([p[..., 0] + s * d[..., 0], p[..., 1] + s * d[..., 1]], axis=-1)
+    return np.where(np.isfinite(hit), hit, np.nan)
+
+
+def _outline(points: np.ndarray) -> np.ndarray:
+    """Closed convex-hull outline (K, 2) of 2-D points (NaNs dropped)."""
+    from scipy.spatial import ConvexHull
+
+    pts = points[np.all(np.isfinite(points), axis=1)]
+    hull = ConvexHull(pts)
+    v = pts[hull.vertices]
+    return np.vstack([v, v[:1]])
+
+
+def lit_outlines(bench, lens, range_mm: float, range_rad: float) -> dict:
+    """{"nominal": outline, "range": outline} of the beam footprint on the front surface (mm, {O})."""
+    fp = beam_footprint(bench, lens, working_range_poses(range_mm, range_rad))
+    nominal = np.vstack([fp[0], fp[0][:1]])
+    return {"nominal": nominal, "range": _outline(fp.reshape(-1, 2)), "footprints": fp}
+
+
+def plot_beam_footprint(lens, lit: dict, range_mm: float, range_rad: float):
+    """Figure: the beam footprint on the front surface for every pose of the working range,
+    with the clear aperture and the mechanical edge (mm, lens frame {O}); left the whole
+    lens, right a close-up of the lit area."""
+    fig = new_figure(figsize=(12, 5.8), layout="constrained")
+    th = np.linspace(0, 2 * np.pi, 361)
+    Re = 0.5 * max(lens.edge_diameter, lens.aperture)
+    for k, span in enumerate((1.08 * Re, max(np.nanmax(np.abs(lit["range"])) * 1.25, 0.1))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        ax.plot(0.5 * lens.aperture * np.cos(th), 0.5 * lens.aperture * np.sin(th), "k-", lw=1,
+                label=f"clear aperture {lens.aperture:g} mm")
+        if lens.edge_diameter > lens.aperture:
+            ax.plot(Re * np.cos(th), Re * np.sin(th), "k--", lw=1, label=f"edge {lens.edge_diameter:g} mm")
+        for i, f in enumerate(lit["footprints"][1:]):
+            ax.plot(*np.vstack([f, f[:1]]).T, color="tab:blue", lw=0.5, alpha=0.5,
+                    label="beam 1/e^2 at one pose of the range" if i == 0 else None)
+        ax.fill(*lit["range"].T, color="tab:blue", alpha=0.15, label="lit over the working range")
+        ax.plot(*lit["nominal"].T, color="tab:red", lw=1.8, label="beam 1/e^2, nominal pose")
+        ax.set_xlim(-span, span)
+        ax.set_ylim(-span, span)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x in lens frame {O} (mm)")
+        ax.set_ylabel("y in lens frame {O} (mm)")
+        ax.set_title("whole lens" if k == 0 else "close-up of the lit area", fontsize=9)
+        ax.grid(True, alpha=0.3)
+        if k == 1:
+            ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{lens.name or 'lens'}: beam footprint on the front surface over the working range "
+                 f"+-{range_mm:g} mm, +-{np.degrees(range_rad):g} deg")
+    return fig
+
+
+# --------------------------------------------------------------------------- sensor
+
+def plot_lenslet_field(bench, lens, pose=None, step=None):
+    """Figure: the Shack-Hartmann slope field on the lenslets of the Zernike pupil.
+
+    Left: slopes at ``pose`` (default nominal) as arrows (mrad; the mean slope, a pure tilt,
+    is removed so the shape shows), colour = irradiance relative to the input peak.
+    Right: the change of the slopes for a pose step (default +1 pose scale in rz, the
+    hardest DOF to observe), in urad. Lenslet grid around the pupil in grey.
+    """
+    from .optics.pose import DOF_NAMES
+    from .optics.shack_hartmann import ForwardModel
+
+    fm = ForwardModel(bench, lens)
+    pupil = fm.pupil
+    x0 = np.zeros(6) if pose is None else np.asarray(pose, dtype=float)
+    if step is None:
+        step = np.zeros(6)
+        step[5] = bench.pose_scales[5]
+    step = np.asarray(step, dtype=float)
+    res = fm.evaluate(np.stack([x0, x0 + step]), check_range=False)
+    c = pupil.centres
+    fig = new_figure(figsize=(12, 5.6), layout="constrained")
+    pitch = bench.sensor.pitch_mm
+    r = pupil.radius_mm
+    cx, cy = pupil.center_mm
+    g = np.arange(-np.ceil(1.4 * r / pitch), np.ceil(1.4 * r / pitch) + 1) * pitch
+    gx, gy = np.meshgrid(g + cx, g + cy)
+    th = np.linspace(0, 2 * np.pi, 361)
+    sl = res.slopes[0] - np.nanmean(res.slopes[0], axis=0)
+    dsl = res.slopes[1] - res.slopes[0]
+    jn = int(np.argmax(np.abs(step)))
+    unit = "mm" if jn < 3 else "deg"
+    mag = step[jn] if jn < 3 else np.degrees(step[jn])
+    panels = ((sl * 1e3, "mrad", "slope minus mean tilt at the " + ("nominal pose" if pose is None else "pose")),
+              (dsl * 1e6, "urad", f"slope change for {DOF_NAMES[jn]} {mag:+.3g} {unit}"))
+    for k, (v, u, title) in enumerate(panels):
+        ax = fig.add_subplot(1, 2, k + 1)
+        ax.plot(gx.ravel(), gy.ravel(), ".", color="0.8", ms=2, label=f"lenslet grid, pitch {1000 * pitch:g} um")
+        ax.plot(cx + r * np.cos(th), cy + r * np.sin(th), "k-", lw=1, label=f"Zernike pupil r = {r:g} mm")
+        q = ax.quiver(c[:, 0], c[:, 1], v[:, 0], v[:, 1], res.irradiance[0] if k == 0 else np.hypot(*v.T),
+                      cmap="viridis", angles="xy", pivot="middle")
+        mx = float(np.nanmax(np.hypot(*v.T))) if np.isfinite(v).any() else 0.0
+        if mx > 0:
+            ax.quiverkey(q, 0.72, 0.95, mx, f"{mx:.3g} {u}", labelpos="E", coordinates="axes",
+                         fontproperties={"size": 8})
+        fig.colorbar(q, ax=ax, shrink=0.8,
+                     label="irradiance / input peak" if k == 0 else f"|slope change| ({u})")
+        ax.set_aspect("equal")
+        ax.set_xlabel("x on the lenslet plane {S} (mm)")
+        ax.set_ylabel("y on the lenslet plane {S} (mm)")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"{lens.name or 'lens'}: Shack-Hartmann slopes on {pupil.n_lenslets} pupil lenslets")
+    return fig
+
+
+# --------------------------------------------------------------------------- drawing
+
+def _dim(ax, p0, p1, text, offset=(0.0, 0.0), color="k", fontsize=8):
+    """A dimension line with arrows from p0 to p1 (data units) and its label."""
+    p0, p1 = np.asarray(p0, float) + offset, np.asarray(p1, float) + offset
+    ax.annotate("", xy=p1, xytext=p0, arrowprops=dict(arrowstyle="<|-|>", lw=0.8, color=color, shrinkA=0, shrinkB=0))
+    mid = 0.5 * (p0 + p1)
+    vertical = abs(p1[1] - p0[1]) > abs(p1[0] - p0[0])
+    ax.text(*mid, text, fontsize=fontsize, color=color, ha="center", va="center", rotation=90 if vertical else 0,
+            bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.9))
+
+
+def plot_cross_section(lens):
+    """Figure: dimensioned cross-sections of the lens in the x-z and y-z planes of {O} (mm):
+    centre thickness, edge thickness, clear aperture, edge diameter, sag at the clear aperture."""
+    fig = new_figure(figsize=(11, 6), layout="constrained")
+    R, Ra, half = 0.5 * lens.edge_diameter, 0.5 * lens.aperture, 0.5 * lens.thickness
+    s = np.linspace(-R, R, 801)
+    for k, (axis, label) in enumerate(((0, "x"), (1, "y"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        x, y = (s, 0 * s) if axis == 0 else (0 * s, s)
+        zf = -half + lens.front.sag(x, y)
+        zb = half + lens.back.sag(x, y)
+        ax.fill(np.concatenate([zf, zb[::-1]]), np.concatenate([s, s[::-1]]), color="lightsteelblue", ec="k", lw=1)
+        ax.axhline(0.0, color="k", lw=0.6, ls="-.")  # optical axis
+        for yy in (-Ra, Ra):
+            ax.axhline(yy, color="tab:green", lw=0.6, ls="--")
+        zmin, zmax = float(np.min(zf)), float(np.max(zb))
+        w = zmax - zmin
+        # centre thickness along the axis
+        zf0, zb0 = float(lens.front.sag(0.0, 0.0)) - half, float(lens.back.sag(0.0, 0.0)) + half
+        _dim(ax, (zf0, 0.06 * R), (zb0, 0.06 * R), f"centre {zb0 - zf0:.3f}")
+        # edge thickness at both ends of the section, with extension lines
+        for e in (-R, R):
+            xe, ye = (e, 0.0) if axis == 0 else (0.0, e)
+            a, b = -half + float(lens.front.sag(xe, ye)), half + float(lens.back.sag(xe, ye))
+            yd = e + 0.1 * R * np.sign(e)
+            for zz in (a, b):
+                ax.plot([zz, zz], [e, yd + 0.02 * R * np.sign(e)], "k-", lw=0.5)
+            _dim(ax, (a, yd), (b, yd), f"edge {b - a:.3f}")
+        # apertures
+        _dim(ax, (zmin - 0.3 * R, -Ra), (zmin - 0.3 * R, Ra), f"clear aperture {2 * Ra:.2f}", color="tab:green")
+        if R > Ra:
+            _dim(ax, (zmax + 0.3 * R, -R), (zmax + 0.3 * R, R), f"edge diameter {2 * R:.2f}")
+        # sag of each surface at the clear aperture rim (+ side), relative to its vertex
+        xa, ya = (Ra, 0.0) if axis == 0 else (0.0, Ra)
+        sags = [float(getattr(lens, side).sag(xa, ya)) - float(getattr(lens, side).sag(0.0, 0.0))
+                for side in ("front", "back")]
+        ax.text(0.02, 0.02, f"sag at {label} = +{Ra:.2f} (clear-aperture rim):\nfront {sags[0]:+.4f}, "
+                f"back {sags[1]:+.4f}", transform=ax.transAxes, fontsize=7, va="bottom",
+                bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.7"))
+        zc = 0.5 * (zmin + zmax)
+        ax.set_xlim(zc - 0.5 * w - 0.6 * R, zc + 0.5 * w + 0.6 * R)
+        ax.set_ylim(-1.35 * R, 1.25 * R)
+        ax.set_aspect("equal")
+        ax.set_xlabel("z in lens frame {O} (mm), beam travels +z")
+        ax.set_ylabel(f"{label} in lens frame {{O}} (mm)")
+        ax.set_title(f"section {label}-z (all dimensions in mm)", fontsize=9)
+        ax.grid(True, alpha=0.2)
+    fig.suptitle(f"{lens.name or 'lens'}: cross-sections, material {lens.material}")
+    return fig
+
+
+# --------------------------------------------------------------------------- design and calibration
+
+def plot_convergence(history, title: str = "Design convergence"):
+    """Figure: best cost against cost evaluations from a design's stored history
+    (rows with "n_evals", "best", "feasible"); infeasible stretches shaded."""
+    rows = [r for r in history if isinstance(r, dict)]
+    fig = new_figure(figsize=(7, 4.2), layout="constrained")
+    ax = fig.add_subplot(1, 1, 1)
+    if not rows:
+        ax.text(0.5, 0.5, "no history stored in the design file", ha="center", va="center", transform=ax.transAxes)
+        return fig
+    n = np.array([r.get("n_evals", i) for i, r in enumerate(rows)], dtype=float)
+    best = np.array([np.nan if r.get("best") is None else r["best"] for r in rows], dtype=float)
+    feas = np.array([bool(r.get("feasible", True)) for r in rows])
+    ok = feas & np.isfinite(best)
+    ax.step(n[ok], best[ok], where="post", color="tab:blue", label="best feasible cost")
+    if np.all(best[ok] > 0):
+        ax.set_yscale("log")
+    if (~feas).any():
+        ax.axvspan(n[0], n[~feas].max(), color="tab:red", alpha=0.1, label="no feasible point yet")
+    ax.set_xlabel("cost evaluations")
+    ax.set_ylabel("best cost (criterion value, dimensionless)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return fig
+
+
+def plot_handeye_residuals(residuals, residual_chi2=None, title: str = "Hand-eye residuals per pose"):
+    """Figure: per-pose residual e_i = log((Z B_i)^-1 A_i X) of a hand-eye solve:
+    translation (um) and rotation (mrad) components, and the whitened chi^2 per pose
+    against the chi^2(6) 95 % level. residuals: (n, 6) in mm and rad."""
+    from scipy.stats import chi2
+
+    e = np.asarray(residuals, dtype=float)
+    n = e.shape[0]
+    i = np.arange(1, n + 1)
+    rows = 3 if residual_chi2 is not None else 2
+    fig = new_figure(figsize=(max(7, 0.28 * n + 3), 2.6 * rows), layout="constrained")
+    width = 0.27
+    for k, (sl, scale, unit, what) in enumerate(((slice(0, 3), 1e3, "um", "translation"),
+                                                 (slice(3, 6), 1e3, "mrad", "rotation"))):
+        ax = fig.add_subplot(rows, 1, k + 1)
+        for c, comp in enumerate("xyz"):
+            ax.bar(i + (c - 1) * width, e[:, sl][:, c] * scale, width, label=f"{what} {comp}")
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_ylabel(f"{what} residual ({unit})")
+        ax.legend(fontsize=7, ncol=3)
+        ax.grid(True, axis="y", alpha=0.3)
+        ax.set_xticks(i)
+        ax.tick_params(axis="x", labelsize=7)
+    if residual_chi2 is not None:
+        ax = fig.add_subplot(rows, 1, 3)
+        c2 = np.asarray(residual_chi2, dtype=float)
+        lim = float(chi2.ppf(0.95, 6))
+        ax.bar(i, c2, color=np.where(c2 > lim, "tab:red", "tab:gray"))
+        ax.axhline(lim, color="tab:red", ls="--", lw=1, label=f"chi^2(6) 95 % = {lim:.1f}")
+        ax.set_ylabel("whitened chi^2 per pose")
+        ax.legend(fontsize=7)
+        ax.set_xticks(i)
+        ax.tick_params(axis="x", labelsize=7)
+    fig.axes[-1].set_xlabel("pose index")
+    fig.suptitle(title)
+    return fig
+
+
+def design_plots(design: "Design | Lens", out_dir: str | PathLike[str], stem: str | None = None) -> list[Path]:
+    """Write the PNGs of a design (or lens) into out_dir: singular values, sag maps with
+    the lit area, Zernike response, beam footprint over the working range, lenslet slope
+    field, dimensioned cross-section and (for a design file) the convergence history.
+    Returns the paths."""
     from .optics.bench import Bench
     from .optics.lens import Lens
+    from .optics.sensitivity import metrics
     from .optics.shack_hartmann import lenslet_pupil
 
     out = Path(out_dir)
     if isinstance(design, Lens):
-        lens, bench, m = design, Bench.default(), None
+        lens, bench, history, cons = design, Bench.default(), None, {}
     else:
-        lens, bench = design.lens, design.bench
-    from .optics.sensitivity import metrics
-
+        lens, bench, history, cons = design.lens, design.bench, design.history, design.constraints
+    range_mm = float(cons.get("range_mm") or 1.0)
+    range_rad = float(cons.get("range_rad") or np.radians(1.0))
     m = metrics(bench, lens)
     stem = stem or (getattr(design, "model", None) or "lens")
     paths = []
     fig = new_figure(figsize=(6, 4))
     plot_singular_values(fig.add_subplot(1, 1, 1), {f"{stem} (rank {m.rank}, kappa {m.kappa:.3g})": m.singular_values})
     paths.append(save_figure(fig, out / f"{stem}_singular_values.png"))
-    paths.append(save_figure(plot_sag_maps(lens), out / f"{stem}_sag.png"))
+    lit = lit_outlines(bench, lens, range_mm, range_rad)
+    paths.append(save_figure(plot_sag_maps(lens, lit=lit), out / f"{stem}_sag.png"))
     modes = lenslet_pupil(bench.sensor).modes
     paths.append(save_figure(plot_zernike_response(m.S, modes, bench.pose_scales), out / f"{stem}_zernike_response.png"))
+    paths.append(save_figure(plot_beam_footprint(lens, lit, range_mm, range_rad), out / f"{stem}_footprint.png"))
+    paths.append(save_figure(plot_lenslet_field(bench, lens), out / f"{stem}_lenslet_field.png"))
+    paths.append(save_figure(plot_cross_section(lens), out / f"{stem}_cross_section.png"))
+    if history is not None:
+        title = f"{stem}: {getattr(design, 'method', '')} on criterion {getattr(design, 'criterion', '')}"
+        paths.append(save_figure(plot_convergence(history, title), out / f"{stem}_convergence.png"))
     return paths

@@ -17,7 +17,9 @@ def test_design_plot_compare_evaluate(tmp_path):
     r = run("plot", str(out), "-o", str(tmp_path / "png"), "--json")
     assert r.returncode == 0, r.stderr
     files = json.loads(r.stdout)["files"]
-    assert len(files) == 3 and all(f.endswith(".png") for f in files)
+    kinds = {f.rsplit("/", 1)[-1][len("e_"):-len(".png")] for f in files}
+    assert kinds == {"singular_values", "sag", "zernike_response", "footprint", "lenslet_field", "cross_section",
+                     "convergence"}
     r = run("compare", str(out), "paper:spherical", "paper:zernike", "--json")
     assert r.returncode == 0, r.stderr
     rows = json.loads(r.stdout)["rows"]

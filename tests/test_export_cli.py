@@ -35,7 +35,8 @@ def test_export_stl_step_report(tmp_path):
 
 @pytest.mark.parametrize("args, fragment", [
     (("zernike", "--layer", "30"), "layer"),
-    (("zernike", "--fiducial"), "edge_diameter"),
+    (("zernike", "--fiducial", "--flange", "0"), "edge_diameter"),
+    (("zernike", "--flange", "-1"), "--flange"),
     (("zernike", "--chord-tol", "-1"), "--chord-tol"),
     (("zernike", "--fiducial", "--fiducial-kind", "hole"), "--fiducial-kind"),
     (("no-such-design.json",), "no-such-design.json"),

@@ -4,6 +4,7 @@ import json
 import math
 
 import numpy as np
+from conftest import check_json_output
 import pytest
 
 from conftest import run_cli_inprocess
@@ -41,7 +42,7 @@ def test_cli_json_happy_path(tmp_path, monkeypatch, capsys, method):
     p, s, _ = _poses(tmp_path)
     code, out, err = _run(monkeypatch, capsys, "handeye", p, "--method", method, "--json")
     assert code == 0, err
-    res = json.loads(out)
+    res = check_json_output("handeye", out)
     for k in ("X", "Z", "cov_X", "cov_Z", "chi2_dof", "residuals", "observable", "null_directions", "method"):
         assert k in res
     assert res["method"] == method and res["observable"] is True

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+from conftest import check_json_output
 import pytest
 
 import lensforge as lf
@@ -97,7 +98,7 @@ def test_cli_scenario(tmp_path):
     r = subprocess.run([sys.executable, "-m", "lensforge", "scenario", "extended_polynomial", "--runs", "1",
                         "--poses", "oed", "-o", str(tmp_path), "--json"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    d = json.loads(r.stdout)
+    d = check_json_output("scenario", r.stdout)
     assert set(d["designs"]) == {"oed"} and d["designs"]["oed"]["runs"] == 1
     r = subprocess.run([sys.executable, "-m", "lensforge", "scenario", "zernike", "--poses", "grid",
                         "-o", str(tmp_path)], capture_output=True, text=True, timeout=300)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from conftest import check_json_output
 import pytest
 
 from lensforge.errors import ConfigError
@@ -98,7 +99,7 @@ def test_cli_study_and_bad_tolerances(tmp_path):
     r = subprocess.run(exe + ["study", "zernike", "--lenses", "2", "--poses", "8", "--workers", "0", "--json",
                               "-t", str(tmp_path / "zero.toml"), "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    d = json.loads(r.stdout)
+    d = check_json_output("study", r.stdout)
     assert d["summary"]["n_lenses"] == 2 and len(d["trials"]["ok"]) == 2
     assert (out / "summary.json").exists() and (out / "errors.png").exists() and (out / "store.sqlite").exists()
     # running again without --resume refuses to touch the store

@@ -33,6 +33,8 @@ one joint linear system).
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 import warnings as _warnings
 from dataclasses import dataclass, field
 
@@ -543,8 +545,10 @@ def _unobservable_message(obs: dict) -> str:
             "would pin it down")
 
 
-def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degenerate: str = "raise",
-                  obs_limits=OBS_LIMITS, max_outer: int = 4, max_nfev: int = 2000) -> HandEyeResult:
+def solve_handeye(A: ArrayLike, B: ArrayLike, method: str = "ml", sigma: tuple[float, float] | None = None,
+                  cov_B: ArrayLike | None = None, *, on_degenerate: str = "raise",
+                  obs_limits: tuple[float, float] = OBS_LIMITS, max_outer: int = 4,
+                  max_nfev: int = 2000) -> HandEyeResult:
     """Solve A_i X = Z B_i for X = ^E T_O and Z = ^W T_S.
 
     A: (n, 4, 4) flange poses ^W T_E (mm); B: (n, 4, 4) lens poses ^S T_O (mm); n >= 3.

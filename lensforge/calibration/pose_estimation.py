@@ -47,6 +47,9 @@ Zernike coefficients um.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+from typing import Any
+
 import warnings
 from dataclasses import dataclass, field
 
@@ -105,8 +108,8 @@ def _whiten_jac(Li, J):
     return _whiten(Li, J.transpose(0, 2, 1)).transpose(0, 2, 1)
 
 
-def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int = 40, xtol: float = 1e-10,
-                         ftol: float = 1e-10, fast_start: bool = True,
+def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLike, *, max_iter: int = 40,
+                         xtol: float = 1e-10, ftol: float = 1e-10, fast_start: bool = True,
                          max_step: float | None = None) -> BatchPoseEstimate:
     """Whitened least-squares pose estimates for P measurements at once (LM, batched).
 
@@ -548,7 +551,8 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
                         observable=ob.observable)
 
 
-def estimate_pose(bench: Bench, lens: Lens, z_measured, x0=None, method: str = "lm", **options) -> PoseEstimate:
+def estimate_pose(bench: Bench, lens: Lens, z_measured: ArrayLike, x0: ArrayLike | None = None, method: str = "lm",
+                  **options: Any) -> PoseEstimate:
     """Estimate the lens pose (mm, rad; relative to nominal) from measured Zernikes (um).
 
     method: a name in ``ESTIMATORS``: "lm" (default; least squares on noise-whitened

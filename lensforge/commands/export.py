@@ -24,6 +24,36 @@ def mesh_triangle_estimate(radius_mm: float, chord_tol_mm: float) -> float:
     return 2.0 * n_rim * max(8.0, n_rim / (2 * math.pi))
 
 
+class _StepProgress:
+    """A rich progress bar over named steps on stderr; yields the callback that starts each step."""
+
+    def __init__(self, steps: list[str], enabled: bool = True):
+        self.steps, self.enabled, self._p, self._task = list(steps), enabled, None, None
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._p = Progress(TextColumn("export: {task.description:<16}"), BarColumn(), MofNCompleteColumn(),
+                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+            self._p.start()
+            self._task = self._p.add_task(self.steps[0] if self.steps else "", total=len(self.steps))
+        return self._tick
+
+    def _tick(self, name: str) -> None:
+        if self._p is None:
+            return
+        done = self.steps.index(name) if name in self.steps else 0
+        self._p.update(self._task, description=name, completed=done)
+
+    def __exit__(self, *exc):
+        if self._p is not None:
+            self._p.update(self._task, completed=len(self.steps))
+            self._p.stop()
+        return False
+
+
 def export_cmd(
     design: str = typer.Argument(..., help="Paper lens name, design JSON (key 'lens') or lens JSON."),
     stl: bool = typer.Option(False, "--stl", help="Write a binary STL (default: both STL and STEP)."),
@@ -36,9 +66,18 @@ def export_cmd(
     chord_tol: float = typer.Option(0.001, "--chord-tol", help="Largest mesh deviation from the surfaces, mm."),
     edge_diameter: float = typer.Option(None, "--edge-diameter",
                                         help="Override the mechanical edge diameter, mm (room for features)."),
+    flange: float = typer.Option(1.0, "--flange",
+                                 help="Mechanical edge beyond the clear aperture, mm radial (room for --fiducial "
+                                      "and --tab; 0 = edge at the clear aperture)."),
+    orient: bool = typer.Option(False, "--orient",
+                                help="Write the STL/3MF in the suggested print orientation (build direction +z)."),
+    optiland: bool = typer.Option(False, "--optiland",
+                                  help="Also write NAME.optiland.json (bench model for optiland) and "
+                                       "NAME.opticstudio.txt (OpticStudio prescription)."),
     out: Path = typer.Option(Path("exports"), "-o", "--out", help="Output folder."),
     name: str = typer.Option(None, "--name", help="File stem (default: the design's name)."),
     slicer: bool = typer.Option(True, "--slicer/--no-slicer", help="Check the STL with PrusaSlicer if present."),
+    no_progress: bool = typer.Option(False, "--no-progress", help="No progress bar."),
     json_out: bool = typer.Option(False, "--json", help="Machine-readable report on stdout."),
 ):
     """Export a lens as printable files and report whether the Form 2 can print it."""
@@ -48,7 +87,10 @@ def export_cmd(
         raise ConfigError(f"--chord-tol: must be a positive number of mm, got {chord_tol}")
     if fiducial_kind not in ("flat", "notch"):
         raise ConfigError(f"--fiducial-kind: must be 'flat' or 'notch', got {fiducial_kind!r}")
-    lens = resolve_lens(design).lens
+    if not math.isfinite(flange) or flange < 0:
+        raise ConfigError(f"--flange: must be a width >= 0 mm, got {flange}")
+    resolved = resolve_lens(design)
+    lens = resolved.lens
     if name is not None and (not name or "/" in name or name.startswith(".") or "\0" in name):
         raise ConfigError(f"--name: {name!r} is not a usable file stem; pass a plain name such as lens1")
     if edge_diameter is not None:
@@ -66,11 +108,15 @@ def export_cmd(
                           f"{n_tri:.2g} triangles, over the limit of {MAX_TRIANGLES:.0e}; use a larger tolerance "
                           "(the Form 2 prints 25 um layers; 0.001 mm is ample)")
     check_output(out, folder=True, need_mb=20 + 200 * n_tri / 1e6)
-    from ..manufacturing.report import export_lens  # imports OCP (~0.8 s): only exports pay it
+    from ..manufacturing.report import export_lens, export_steps  # imports OCP (~0.8 s): only exports pay it
 
-    with staged_dir(out) as st:  # STL, STEP, 3MF and report appear together or not at all
+    steps = export_steps(stl, step, threemf, optiland, slicer)
+    with staged_dir(out) as st, _StepProgress(steps, enabled=not no_progress and not json_out) as tick:
+        # STL, STEP, 3MF, optiland model and report appear together or not at all
         rep = export_lens(lens, st.tmp, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
-                          chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf, write_report=False)
+                          chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf, write_report=False,
+                          flange_mm=None if edge_diameter is not None else flange, orient=orient,
+                          optiland=optiland, bench=resolved.bench_or(), progress=tick)
         report = rep.to_dict()
         report["files"]["report"] = str(st.tmp / f"{stem}.report.json")
         text = st.relocate(dumps_json(report))

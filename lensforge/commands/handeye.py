@@ -150,6 +150,7 @@ def handeye_cmd(
                                             "unobservable (solved and warned, never refused)"),
     obs_limit_rad: float = typer.Option(OBS_LIMITS[1], "--obs-limit-rad",
                                         help="the same for rotations (rad)"),
+    plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
     if poses is not None and (robot_poses or lens_poses):
@@ -193,5 +194,10 @@ def handeye_cmd(
     if out is not None:
         paths = write_bundle(out, {"handeye.json": dumps_json(result) + "\n", "easy_handeye.yaml": easy_handeye_yaml(res.Z)})
         info("files: " + ", ".join(str(v) for v in paths.values()))
+    if plot is not None:
+        from ..plots import plot_handeye_residuals, save_figure
+
+        title = f"{Path(poses).name}: hand-eye residuals per pose ({res.method}, chi2/dof {res.chi2_dof:.3g})"
+        info(f"wrote {save_figure(plot_handeye_residuals(res.residuals, res.residual_chi2, title), plot)}")
     if json_out:
         emit_json(result)

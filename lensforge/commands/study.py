@@ -83,6 +83,7 @@ def study_cmd(
     with staged_dir(out) as st:  # summary and plot together or not at all (the store is already durable)
         _write_json(st.tmp / "summary.json", d)
         plot_error_histograms(res.rot_err_deg, res.trans_err_mm, st.tmp / "errors.png", target_deg, target_mm,
+                              summary=res.summary,
                               title=f"{design}: Z error over {res.n_lenses} as-built lenses")
     s = res.summary
     info(f"{s['n_ok']} of {s['n_lenses']} {calibration} calibrations succeeded ({res.stats.n_resumed} resumed, "

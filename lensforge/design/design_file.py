@@ -7,7 +7,9 @@ from here), ``bench`` (``Bench.to_dict()``), ``criterion``, ``weights``,
 ``constraints``, ``feasibility``, ``metrics`` (rank, kappa, sigma_min, J, D, A, CRLB
 std per DOF in um / urad, ...), ``method``, ``seed``, ``settings``, ``start``,
 ``history`` (best cost per iteration, thinned to at most 200 rows), ``n_evals``,
-``wall_time_s``, ``lensforge_version``; optional ``robust`` (present only for a
+``wall_time_s``, ``lensforge_version``, ``conventions`` (written for other tools and
+ignored on reading: Zernike order and normalisation, coefficient units, the design
+wavelength and the glass index there; see ``lensforge.optics.lens.lens_conventions``); optional ``robust`` (present only for a
 tolerance-robust design: ``tolerances`` in the TOML layout, ``n_samples``, ``seed``,
 ``statistic``, ``criterion``, and the returned lens's robust ``cost``, ``mean``,
 ``nominal``, ``n_failed`` and per-draw ``values``). Files without it are nominal
@@ -16,6 +18,10 @@ design whose ``to_dict()`` equals the original's.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from os import PathLike
 
 import copy
 import math
@@ -28,8 +34,12 @@ import numpy as np
 from ..errors import ConfigError
 from ..fileio import read_json, write_atomic
 from ..optics.bench import Bench
-from ..optics.lens import Lens
+from ..optics.lens import Lens, lens_conventions
 from ..schema import DESIGN_KIND, Num, check_header, number, number_array
+
+if TYPE_CHECKING:
+    from ..optics.sensitivity import Metrics
+    from .robust import RobustSpec
 
 __all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
 
@@ -123,13 +133,13 @@ class Design:
     def rank(self):
         return self.metrics.get("rank")
 
-    def compute_metrics(self, bench: Bench | None = None):
+    def compute_metrics(self, bench: Bench | None = None) -> "Metrics":
         """Fresh ``Metrics`` of the lens on ``bench`` (default: the design's own bench)."""
         from ..optics.sensitivity import metrics
 
         return metrics(bench or self.bench, self.lens, weights=self.weights)
 
-    def robust_spec(self):
+    def robust_spec(self) -> "RobustSpec | None":
         """The :class:`~lensforge.design.robust.RobustSpec` this design was optimised with (None if nominal)."""
         if self.robust is None:
             return None
@@ -165,6 +175,8 @@ class Design:
             "n_evals": int(self.n_evals),
             "wall_time_s": float(self.wall_time_s),
             "lensforge_version": self.lensforge_version,
+            # optional, written for other tools, ignored on reading (recomputed from lens and bench)
+            "conventions": lens_conventions(self.lens, self.bench.laser.wavelength_nm),
         }
         if self.robust is not None:
             d["robust"] = copy.deepcopy(self.robust)
@@ -221,13 +233,13 @@ class Design:
             raise ConfigError(f"{where}: malformed design file ({e}); write it with `lensforge design`") from None
 
 
-def save_design(design: Design, path) -> Path:
+def save_design(design: Design, path: str | PathLike[str]) -> Path:
     """Write the design as JSON (atomically); returns the path."""
     text = json.dumps(design.to_dict(), indent=2, allow_nan=False)
     return write_atomic(path, text + "\n")
 
 
-def load_design(path) -> Design:
+def load_design(path: str | PathLike[str]) -> Design:
     """Read a design JSON file written by ``save_design``."""
     p = Path(path)
     return Design.from_dict(read_json(p, "design file"), where=f"{p.name}")

@@ -19,9 +19,33 @@ import numpy as np
 from ..errors import ConfigError, LensGeometryError
 from ..optics.lens import Lens
 
-__all__ = ["FeatureSpec", "Box", "feature_boxes", "feature_volume_change", "lens_volume"]
+__all__ = ["FeatureSpec", "Box", "feature_boxes", "feature_volume_change", "lens_volume", "with_flange",
+           "DEFAULT_FLANGE_MM"]
 
 FIDUCIAL_KINDS = ("flat", "notch")
+
+# ASSUMPTION: a 1 mm wide mechanical edge (flange) around the clear aperture. It holds the
+# default 0.5 mm fiducial with its 0.1 mm clearance and the tab's 0.5 mm overlap, and gives
+# a holder or gripper something to touch that is not optical surface.
+DEFAULT_FLANGE_MM = 1.0
+
+
+def with_flange(lens: Lens, flange_mm: float = DEFAULT_FLANGE_MM) -> Lens:
+    """The lens with a mechanical edge at least ``flange_mm`` (radial, mm) beyond the clear
+    aperture: its surfaces continue outward to edge_diameter = aperture + 2 flange_mm. A lens
+    whose edge is already that wide is returned unchanged."""
+    f = float(flange_mm)
+    if not np.isfinite(f) or f < 0:
+        raise ConfigError(f"flange: must be a finite width >= 0 mm, got {flange_mm}")
+    want = lens.aperture + 2.0 * f
+    if lens.edge_diameter >= want:
+        return lens
+    wide = lens.replace(edge_diameter=want)
+    try:
+        return wide.validate()
+    except LensGeometryError as e:
+        raise LensGeometryError(f"flange: continuing the surfaces {f:g} mm beyond the clear aperture fails ({e}); "
+                                "choose a narrower flange (CLI: --flange) or --edge-diameter") from None
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,9 @@ Lens frame {O}, mm. The STL carries the lens in {O}: optical axis along +z.
 
 from __future__ import annotations
 
+from os import PathLike
+
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +41,9 @@ __all__ = [
     "save_stl",
     "apply_features",
     "features_from_args",
+    "orient_mesh",
+    "save_3mf",
+    "stl_header",
 ]
 
 MAX_RINGS = 3000  # about 5e7 triangles: beyond this the tolerance is not meant for printing
@@ -140,6 +146,8 @@ class LensMesh:
     analytic_volume_mm3: float  # plain lens + features, exact integral
     volume_bound_mm3: float  # the largest |mesh - analytic| the chord errors allow
     features: tuple = ()
+    lens_name: str = ""
+    transform: tuple | None = None  # 4x4 applied to the {O} coordinates (None: the mesh is in {O})
 
     @property
     def chord_error_mm(self) -> float:
@@ -245,7 +253,31 @@ def build_lens_mesh(lens: Lens, chord_tol_mm: float = 1e-3, features: FeatureSpe
         verts, faces = apply_features(verts, faces, boxes)
     mesh = trimesh.Trimesh(vertices=verts, faces=faces, process=False)
     return LensMesh(mesh, n, n_rim, tol, (float(errs[0]), float(errs[1])), float(rim_err),
-                    float(v_exact), float(bound), tuple(boxes))
+                    float(v_exact), float(bound), tuple(boxes), lens.name)
+
+
+def orient_mesh(lm: LensMesh, build_direction) -> LensMesh:
+    """The mesh turned so that ``build_direction`` (in {O}) points along +z of the printer,
+    centred in x and y and resting on z = 0. The 4x4 transform is kept on the result."""
+    from scipy.spatial.transform import Rotation
+
+    d = np.asarray(build_direction, float)
+    d = d / np.linalg.norm(d)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(d, z)
+    s, c = np.linalg.norm(axis), float(d @ z)
+    if s < 1e-15:
+        R = np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        R = Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix()
+    v = lm.mesh.vertices @ R.T
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    t = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    mesh = trimesh.Trimesh(vertices=v + t, faces=lm.mesh.faces, process=False)
+    return dataclasses.replace(lm, mesh=mesh, transform=tuple(map(tuple, T.tolist())))
 
 
 @dataclass(frozen=True)
@@ -354,7 +386,7 @@ def features_from_args(fiducial=False, tab=False, **kw) -> FeatureSpec:
     return FeatureSpec(fiducial=kind, tab=bool(tab), **kw)
 
 
-def export_stl(lens: Lens, path, chord_tol_mm: float = 1e-3, fiducial: bool | str = False, tab: bool = False,
+def export_stl(lens: Lens, path: str | PathLike[str], chord_tol_mm: float = 1e-3, fiducial: bool | str = False, tab: bool = False,
                features: FeatureSpec | None = None, n_rings: int | None = None) -> StlExport:
     """Write the lens as a binary STL (atomically) after validating the mesh.
 
@@ -376,7 +408,15 @@ def save_3mf(lm: LensMesh, path) -> Path:
         raise LensforgeError(f"mesh: validation failed ({chk.to_dict()}); the 3MF was not written")
     mesh = lm.mesh.copy()
     mesh.units = "millimeters"
+    mesh.metadata["name"] = lm.lens_name or Path(path).stem
     return write_atomic(path, trimesh.exchange.export.export_mesh(mesh, None, file_type="3mf"))
+
+
+def stl_header(name: str, frame: str = "lens frame {O}") -> bytes:
+    """The 80-byte binary-STL header: lens name, units and frame (ASCII, never starting with 'solid')."""
+    text = f"lensforge lens {name}; units mm; {frame}"
+    raw = text.encode("ascii", "replace")[:80]
+    return raw.ljust(80, b" ")
 
 
 def save_stl(lm: LensMesh, path, t0: float | None = None) -> StlExport:
@@ -389,7 +429,8 @@ def save_stl(lm: LensMesh, path, t0: float | None = None) -> StlExport:
     if not chk.ok:
         raise LensforgeError(f"mesh: validation failed ({chk.to_dict()}); the STL was not written")
     path = Path(path)
-    data = trimesh.exchange.stl.export_stl(lm.mesh)
+    frame = "lens frame {O}" if lm.transform is None else "print orientation, build direction +z"
+    data = stl_header(lm.lens_name or path.stem, frame) + trimesh.exchange.stl.export_stl(lm.mesh)[80:]
     write_atomic(path, data)
     return StlExport(path, lm.triangles, lm.chord_error_mm, lm.chord_tol_mm, lm.surface_chord_error_mm,
                      lm.rim_chord_error_mm, lm.n_rings, lm.n_rim, chk.volume_mm3, lm.analytic_volume_mm3,

@@ -14,6 +14,8 @@ Lens frame {O}, mm. The STL never goes through OCC (see mesh.py).
 
 from __future__ import annotations
 
+from os import PathLike
+
 import tempfile
 import time
 from contextlib import contextmanager
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
 from OCP.BRep import BRep_Tool
 from OCP.BRepAlgoAPI import BRepAlgoAPI_Cut, BRepAlgoAPI_Fuse, BRepAlgoAPI_Splitter
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Transform
@@ -36,6 +39,7 @@ from OCP.Interface import Interface_Static
 from OCP.Message import Message, Message_Gravity
 from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
 from OCP.STEPControl import STEPControl_AsIs, STEPControl_Reader, STEPControl_Writer
+from OCP.TCollection import TCollection_HAsciiString
 from OCP.TColStd import TColStd_Array2OfReal
 from OCP.TopAbs import TopAbs_IN, TopAbs_SHELL, TopAbs_SOLID
 from OCP.TopExp import TopExp_Explorer
@@ -278,12 +282,34 @@ def _quiet_occ():
             pr.SetTraceLevel(level)
 
 
-def _step_bytes(shape: TopoDS_Shape) -> bytes:
+def _ascii(text: str) -> str:
+    """STEP strings are ISO 10303-21 ASCII: keep printable ASCII, drop quotes."""
+    return "".join(c if 32 <= ord(c) < 127 and c not in "'\\" else "?" for c in text)
+
+
+def _name_product(model, name: str, file_name: str) -> None:
+    """Lens name and units in the STEP PRODUCT entity and the file header."""
+    label = _ascii(name or "lens")
+    desc = f"lensforge lens {label}; lengths in mm; lens frame {{O}}: origin on the axis midway between the vertices, +z front to back"
+    for i in range(1, model.NbEntities() + 1):
+        e = model.Value(i)
+        if e.DynamicType().Name() == "StepBasic_Product":
+            e.SetId(TCollection_HAsciiString(_ascii(Path(file_name).stem)))
+            e.SetName(TCollection_HAsciiString(label))
+            e.SetDescription(TCollection_HAsciiString(desc))
+    h = APIHeaderSection_MakeHeader(model)
+    h.SetName(TCollection_HAsciiString(_ascii(file_name)))
+    h.SetDescriptionValue(1, TCollection_HAsciiString(desc))
+    h.SetOriginatingSystem(TCollection_HAsciiString("lensforge"))
+
+
+def _step_bytes(shape: TopoDS_Shape, name: str = "lens", file_name: str = "lens.step") -> bytes:
     with _quiet_occ():
         Interface_Static.SetCVal_s("write.step.schema", "AP214IS")
         Interface_Static.SetCVal_s("write.step.unit", "MM")
         w = STEPControl_Writer()
         w.Transfer(shape, STEPControl_AsIs)
+        _name_product(w.Model(), name, file_name)
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "lens.step"
             if w.Write(str(p)) != IFSelect_RetDone:
@@ -323,7 +349,7 @@ class StepExport:
         return d
 
 
-def export_step(lens: Lens, path, fiducial: bool | str = False, tab: bool = False,
+def export_step(lens: Lens, path: str | PathLike[str], fiducial: bool | str = False, tab: bool = False,
                 features: FeatureSpec | None = None, deviation_goal_mm: float = 1e-5,
                 grid: int | None = None) -> StepExport:
     """Write the lens as an AP214 STEP solid (atomically) and verify it by reading it back.
@@ -339,8 +365,8 @@ def export_step(lens: Lens, path, fiducial: bool | str = False, tab: bool = Fals
     rep = solid_report(sol.shape)
     if not (rep["valid"] and rep["closed"] and rep["solids"] == 1):
         raise LensforgeError(f"step: the lens solid is not a single valid closed solid ({rep}); file not written")
-    data = _step_bytes(sol.shape)
     path = Path(path)
+    data = _step_bytes(sol.shape, lens.name or path.stem, path.name)
     write_atomic(path, data)
     back = solid_report(read_step(path))
     v = sol.analytic_volume_mm3

@@ -26,6 +26,8 @@ draws of the full model (common random numbers for variance budgets).
 
 from __future__ import annotations
 
+from os import PathLike
+
 import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -303,12 +305,12 @@ class Tolerances:
         except ConfigError as e:
             raise ConfigError(f"{where}: {e}") from None
 
-    def save(self, path) -> Path:
+    def save(self, path: str | PathLike[str]) -> Path:
         """Write the tolerances as TOML (atomically)."""
         return save_tolerances(self, path)
 
 
-def load_tolerances(path) -> Tolerances:
+def load_tolerances(path: str | PathLike[str]) -> Tolerances:
     """Tolerances from a TOML file (missing keys keep the documented defaults)."""
     p = Path(path)
     return Tolerances.from_dict(read_toml(p, "tolerances file"), where=f"tolerances file {p.name}")

@@ -8,6 +8,8 @@ unknown keys, wrong types and non-finite numbers are errors naming the field.
 
 from __future__ import annotations
 
+from os import PathLike
+
 import dataclasses
 import math
 from dataclasses import dataclass, field, fields
@@ -276,7 +278,7 @@ def _from_dict(cls, d, where):
         raise ConfigError(msg if msg.startswith(where) else f"{where}.{msg}") from None
 
 
-def load_bench(path) -> Bench:
+def load_bench(path: str | PathLike[str]) -> Bench:
     """Read a bench TOML file; missing keys take the defaults."""
     d = read_toml(path, "bench file")
     check_header(d, f"bench file {Path(path).name}", kind="lensforge.bench")
@@ -285,6 +287,6 @@ def load_bench(path) -> Bench:
     return Bench.from_dict(d, f"{Path(path).name}:bench")
 
 
-def save_bench(bench: Bench, path) -> Path:
+def save_bench(bench: Bench, path: str | PathLike[str]) -> Path:
     """Write the bench as TOML (atomically)."""
     return write_atomic(path, tomli_w.dumps(bench.to_dict()))

@@ -7,6 +7,10 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
+from os import PathLike
+
+from numpy.typing import ArrayLike
+
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -20,7 +24,7 @@ from .bench import Bench
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
-__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens", "resolve_lens", "ResolvedLens"]
+__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens", "resolve_lens", "ResolvedLens", "lens_conventions"]
 
 
 def polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
@@ -76,7 +80,7 @@ class Lens:
         return self._material
 
     # --- geometry -----------------------------------------------------------
-    def thickness_at(self, x, y):
+    def thickness_at(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Axial glass thickness (mm) at lens-frame (x, y) in mm."""
         return self.thickness + self.back.sag(x, y) - self.front.sag(x, y)
 
@@ -161,6 +165,25 @@ class Lens:
         return replace(self, **changes)
 
 
+def lens_conventions(lens: Lens, wavelength_nm: float) -> dict:
+    """What another tool needs to read this lens's numbers (JSON-ready)."""
+    return {
+        "length_unit": "mm",
+        "sag_coefficient_units": "mm (Zernike and extended-polynomial coefficients multiply "
+                                 "dimensionless polynomials of x/R_n, y/R_n; even aspheric "
+                                 "alpha_i in mm^(1-2i); polynomial zeta_i, gamma_i in mm^(1-i))",
+        "zernike_order": "noll",
+        "zernike_first_index": 1,
+        "zernike_normalisation": "rms (Noll): Z_j = sqrt(2 (n+1)/(1+delta_m0)) R_n^|m|(rho) cos/sin(|m| phi)",
+        "zernike_sign": "even Noll j: cos(m phi); odd: sin(m phi)",
+        "wavefront_zernike_units": "um of wavefront (OPD), Noll order, RMS-normalised",
+        "design_wavelength_nm": float(wavelength_nm),
+        "index_at_design_wavelength": float(lens.index(wavelength_nm)),
+        "material": lens.material if isinstance(lens.material, str) else lens.material.name,
+        "index_offset": float(lens.index_offset),
+    }
+
+
 # ---------------------------------------------------------------------------
 # The paper's lenses (Optics Express 30(9) 14368, 2022, Eqs. 11, 15, 17 and Table 1).
 #
@@ -243,7 +266,7 @@ class ResolvedLens:
         return override or self.bench or Bench.default()
 
 
-def resolve_lens(spec) -> ResolvedLens:
+def resolve_lens(spec: object) -> ResolvedLens:
     """The one lens resolver of every command and study: a paper lens name
     (spherical, polynomial, extended_polynomial, zernike; '-' for '_' accepted),
     'paper:NAME', a design JSON file (lens under key "lens", bench under "bench"), a
@@ -291,7 +314,7 @@ def resolve_lens(spec) -> ResolvedLens:
     return ResolvedLens(Lens.from_dict(data, where=f"{p.name}:lens").validate(), p.stem, None, data, source=spec)
 
 
-def load_lens(source) -> tuple[Lens, dict]:
+def load_lens(source: "str | PathLike[str]") -> tuple[Lens, dict]:
     """(validated lens, parsed JSON or {}) of ``resolve_lens(source)``."""
     r = resolve_lens(source)
     return r.lens, r.data

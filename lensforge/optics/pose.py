@@ -8,6 +8,8 @@ iteration, where scipy's per-call overhead dominated.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -89,7 +91,7 @@ def rotvecs(R) -> np.ndarray:
     return (q[:, :3] * scale[:, None]).reshape(R.shape[:-2] + (3,))
 
 
-def pose_to_matrix(x) -> np.ndarray:
+def pose_to_matrix(x: ArrayLike) -> np.ndarray:
     """4x4 transform(s) [R(r), t; 0, 1] of pose vector(s) (..., 6)."""
     x = np.asarray(x, dtype=float)
     T = np.zeros(x.shape[:-1] + (4, 4))
@@ -99,13 +101,13 @@ def pose_to_matrix(x) -> np.ndarray:
     return T
 
 
-def matrix_to_pose(T) -> np.ndarray:
+def matrix_to_pose(T: ArrayLike) -> np.ndarray:
     """Pose vector(s) (..., 6) of 4x4 transform(s)."""
     T = np.asarray(T, dtype=float)
     return np.concatenate([T[..., :3, 3], rotvecs(T[..., :3, :3])], axis=-1)
 
 
-def invert_poses(T) -> np.ndarray:
+def invert_poses(T: ArrayLike) -> np.ndarray:
     """Inverse(s) of rigid transform(s) (..., 4, 4), exact for orthonormal R."""
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]

@@ -23,6 +23,8 @@ covariance and the observability of each DOF.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,7 +32,7 @@ import numpy as np
 from .bench import Bench
 from .lens import Lens
 from .pose import DOF_NAMES
-from .shack_hartmann import ForwardModel
+from .shack_hartmann import ForwardModel, ZernikeResult
 
 __all__ = ["jacobian", "observability", "Observability", "sensitivity", "sensitivity_from_model", "Metrics",
            "metrics", "metrics_from_S", "paper_cost", "RANK_PENALTY"]
@@ -43,7 +45,8 @@ NULL_ENTRY_TOL = 1e-6
 NULL_ENTRY_TOL_NOISY = 1e-2
 
 
-def jacobian(model: ForwardModel, x, *, uv=None, z0=None, central: bool = True, check_range: bool = False):
+def jacobian(model: ForwardModel, x: ArrayLike, *, uv: ArrayLike | None = None, z0: ArrayLike | None = None,
+             central: bool = True, check_range: bool = False) -> tuple[np.ndarray, np.ndarray, ZernikeResult]:
     """Finite-difference Jacobians dz/dx (P, m, 6) at poses x (P, 6), one batched trace.
 
     uv: (P, ...) aimed rays at x (warm start; default: traced here), z0: (P, m)
@@ -135,7 +138,7 @@ class Observability:
                                             for v in self.unobservable_directions.T]}
 
 
-def observability(Jw, scales, rtol: float, limit: float = 1.0, names=DOF_NAMES,
+def observability(Jw: ArrayLike, scales: ArrayLike, rtol: float, limit: float = 1.0, names: tuple[str, ...] = DOF_NAMES,
                   equilibrate: bool = False) -> Observability:
     """DESIGN.md's observability rule on a whitened Jacobian Jw (rows, n).
 
@@ -205,7 +208,7 @@ def sensitivity_from_model(model: ForwardModel, pose=None, raise_invalid: bool =
     return J[0], base.z[0], res
 
 
-def sensitivity(bench: Bench, lens: Lens, pose=None) -> np.ndarray:
+def sensitivity(bench: Bench, lens: Lens, pose: ArrayLike | None = None) -> np.ndarray:
     """Sensitivity matrix S = dz/dx (m x 6): um per mm (tx, ty, tz), um per rad (rx, ry, rz)."""
     return sensitivity_from_model(ForwardModel(bench, lens), pose)[0]
 
@@ -294,7 +297,8 @@ def metrics_from_S(S: np.ndarray, R: np.ndarray, bench: Bench, z0=None, weights=
     )
 
 
-def metrics(bench: Bench, lens: Lens, pose=None, weights=(1.0, 1.0)) -> Metrics:
+def metrics(bench: Bench, lens: Lens, pose: ArrayLike | None = None,
+            weights: tuple[float, float] = (1.0, 1.0)) -> Metrics:
     """Rank, kappa, sigma_min, J and the Cramer-Rao bound of a lens on a bench."""
     model = ForwardModel(bench, lens)
     S, z0, _ = sensitivity_from_model(model, pose)

@@ -24,6 +24,8 @@ cov(z) = sigma^2 F F^T.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
@@ -234,7 +236,7 @@ class ForwardModel:
         """L^-1 with R = L L^T (1/um): whitened residuals w = L^-1 (z - h(x)) have unit covariance."""
         return np.linalg.inv(np.linalg.cholesky(self.noise_cov))
 
-    def evaluate(self, poses, uv0=None, check_range: bool = True) -> ZernikeResult:
+    def evaluate(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = True) -> ZernikeResult:
         """Noise-free Zernike coefficients for poses (P, 6); never raises on bad rays."""
         poses = np.atleast_2d(np.asarray(poses, dtype=float))
         if check_range:
@@ -264,7 +266,7 @@ class ForwardModel:
         res = self.evaluate(np.zeros(6) if pose is None else pose, check_range=False)
         return summarize_range(self.bench.sensor, self.bench.laser.wavelength_nm, res.slopes[0], res.range_use[0])
 
-    def zernike(self, poses, rng: np.random.Generator | None = None) -> np.ndarray:
+    def zernike(self, poses: ArrayLike, rng: np.random.Generator | None = None) -> np.ndarray:
         """Zernike coefficients (P, m) or (m,) in um; raises if any pose is not measurable.
 
         With an rng, slope noise of the bench's noise model is added before the fit.
@@ -279,7 +281,7 @@ class ForwardModel:
         return z[0] if poses.ndim == 1 else z
 
 
-def measure(bench: Bench, lens: Lens, pose=None, rng: np.random.Generator | None = None) -> np.ndarray:
+def measure(bench: Bench, lens: Lens, pose: ArrayLike | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
     """Zernike vector (um, Noll modes 2..) the SH sensor reports for the lens at ``pose``.
 
     pose: (6,) or (P, 6) pose vector(s) (mm, rad) relative to the nominal placement

@@ -15,6 +15,8 @@ at z = -d in {S} with parallel axes (DESIGN.md).
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 import math
 from dataclasses import dataclass
 
@@ -347,7 +349,7 @@ def _kernel_args(kern: LensKernel):
     return kern.c, kern.k, kern.alpha, kern.n_alpha, kern.poly, kern.ripple, kern.zv, kern.ap_r, kern.n
 
 
-def trace_rays(bench: Bench, lens: Lens, poses, uv, kernel: LensKernel | None = None) -> TraceResult:
+def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None) -> TraceResult:
     """Trace beam rays with transverse coordinates uv (N, 2) (mm, relative to the beam
     centre) through the lens at each pose (P, 6) to the sensor plane.
     """

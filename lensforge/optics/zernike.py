@@ -13,6 +13,8 @@ from one definition.
 
 from __future__ import annotations
 
+from numpy.typing import ArrayLike
+
 from functools import lru_cache
 from math import comb, factorial, sqrt
 
@@ -167,7 +169,7 @@ def zernike_gradient(j: int, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, 
     return gx, gy
 
 
-def to_osa_vector(noll_indices, coefficients) -> np.ndarray:
+def to_osa_vector(noll_indices: ArrayLike, coefficients: ArrayLike) -> np.ndarray:
     """Reorder coefficients given at Noll indices into an OSA-indexed vector (from 0)."""
     noll_indices = np.asarray(noll_indices, dtype=int)
     coefficients = np.asarray(coefficients, dtype=float)
@@ -177,7 +179,7 @@ def to_osa_vector(noll_indices, coefficients) -> np.ndarray:
     return out
 
 
-def from_osa_vector(osa_coefficients) -> tuple[np.ndarray, np.ndarray]:
+def from_osa_vector(osa_coefficients: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(Noll indices, coefficients) of an OSA-indexed vector (from 0)."""
     c = np.asarray(osa_coefficients, dtype=float)
     noll = np.array([osa_to_noll(i) for i in range(len(c))])
@@ -185,11 +187,11 @@ def from_osa_vector(osa_coefficients) -> tuple[np.ndarray, np.ndarray]:
     return noll[order], c[order]
 
 
-def to_thorlabs_vector(noll_indices, coefficients) -> np.ndarray:
+def to_thorlabs_vector(noll_indices: ArrayLike, coefficients: ArrayLike) -> np.ndarray:
     """Coefficients (um) reordered as the Thorlabs WFS reports them: entry k-1 holds mode k = OSA + 1."""
     return to_osa_vector(noll_indices, coefficients)
 
 
-def from_thorlabs_vector(thorlabs_coefficients) -> tuple[np.ndarray, np.ndarray]:
+def from_thorlabs_vector(thorlabs_coefficients: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(Noll indices, coefficients) of a Thorlabs-ordered vector (entry k-1 = mode k)."""
     return from_osa_vector(thorlabs_coefficients)

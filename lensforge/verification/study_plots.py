@@ -13,7 +13,19 @@ import numpy as np
 
 from ..fileio import write_atomic
 
-__all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget"]
+__all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget", "percentile"]
+
+
+def percentile(values, q: float) -> float | None:
+    """The percentile the study's console and JSON report (failures count as infinitely
+    wrong; ``numpy.percentile(method="higher")``, an observed value). One call, so plots and
+    numbers agree; None when undefined or infinite. The study command passes its summary
+    to the plots instead, so they draw exactly the reported numbers."""
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return None
+    r = float(np.percentile(v, q, method="higher"))
+    return r if np.isfinite(r) else None
 
 
 def _fig(*args, **kw):
@@ -34,9 +46,13 @@ def _save(fig, path) -> Path:
     return write_atomic(path, buf.getvalue())
 
 
-def _hist(ax, values, target, label, unit):
-    v = np.asarray(values, dtype=float)
-    v = v[np.isfinite(v)]
+def _hist(ax, values, target, label, unit, stats: dict | None = None, percent: float = 95.0):
+    """Histogram of the finite values; the median and percentile lines come from ``stats``
+    ({"median": .., "pNN": ..}, the study summary) or else :func:`percentile` over all
+    values (non-finite = failed, counted as worst)."""
+    allv = np.asarray(values, dtype=float)
+    v = allv[np.isfinite(allv)]
+    n_bad = int(allv.size - v.size)
     if v.size == 0:
         ax.text(0.5, 0.5, "no successful trial", ha="center", transform=ax.transAxes)
         return
@@ -47,20 +63,42 @@ def _hist(ax, values, target, label, unit):
     else:
         bins = 40
     ax.hist(v, bins=bins, color="tab:blue", alpha=0.8)
-    for q, ls in ((50, "-"), (95, "--")):
-        ax.axvline(np.percentile(v, q), color="k", ls=ls, lw=1, label=f"{q}th pct {np.percentile(v, q):.3g} {unit}")
+    key = f"p{percent:g}"
+    for q, name, ls in ((50.0, "median", "-"), (percent, key, "--")):
+        val = (stats or {}).get("median" if q == 50.0 else key) if stats is not None else percentile(allv, q)
+        text = "median" if q == 50.0 else f"{q:g}th pct"
+        if val is None:
+            ax.plot([], [], color="k", ls=ls, label=f"{text}: undefined (failures)")
+            continue
+        ax.axvline(val, color="k", ls=ls, lw=1, label=f"{text} {val:.3g} {unit}")
     if target is not None:
         ax.axvline(target, color="tab:red", lw=1.5, label=f"target {target:g} {unit}")
     ax.set_xlabel(f"{label} ({unit})")
     ax.set_ylabel("as-built lenses")
+    if n_bad:
+        ax.plot([], [], " ", label=f"{n_bad} failed (not drawn; counted as worst)")
     ax.legend(fontsize=8)
 
 
-def plot_error_histograms(rot_err_deg, trans_err_mm, path, target_deg=None, target_mm=None, title="") -> Path:
-    """Histograms of the hand-eye Z error: rotation (deg) and translation (mm)."""
-    fig, (a1, a2) = _fig(1, 2, figsize=(10, 3.8))
-    _hist(a1, rot_err_deg, target_deg, "Z rotation error", "deg")
-    _hist(a2, trans_err_mm, target_mm, "Z translation error", "mm")
+def plot_error_histograms(rot_err_deg, trans_err_mm, path, target_deg=None, target_mm=None, title="",
+                          summary: dict | None = None) -> Path:
+    """Histograms of the hand-eye Z error: rotation (deg) and translation (mm).
+
+    summary: the study summary (``summarize_errors``): its median and percentile are drawn,
+    so the plot shows the console's numbers, and its counts of failed lenses and of poses
+    that did not converge or fell out of range are written under the plot.
+    """
+    fig, (a1, a2) = _fig(1, 2, figsize=(10, 4.2))
+    q = float((summary or {}).get("percentile", 95.0))
+    _hist(a1, rot_err_deg, target_deg, "Z rotation error", "deg",
+          None if summary is None else summary.get("rotation_deg"), q)
+    _hist(a2, trans_err_mm, target_mm, "Z translation error", "mm",
+          None if summary is None else summary.get("translation_mm"), q)
+    if summary is not None:
+        counts = (f"{summary.get('n_ok', '?')} of {summary.get('n_lenses', '?')} calibrations succeeded; poses: "
+                  f"{summary.get('not_converged_poses', 0)} not converged, {summary.get('out_of_range_poses', 0)} "
+                  f"out of range, {summary.get('pupil_lost_poses', 0)} pupil lost")
+        fig.text(0.5, -0.02, counts, ha="center", va="top", fontsize=9)
     fig.suptitle(title or "Calibration error over as-built lenses")
     return _save(fig, path)
 
@@ -76,8 +114,13 @@ def plot_sensitivity(rows: list[dict], path, title="") -> Path:
     for ax, key, unit, col in ((a1, "p95_rot_deg", "deg", "tab:orange"), (a2, "p95_trans_mm", "mm", "tab:blue")):
         vals = np.array([r[key] if r[key] is not None else np.nan for r in rows], dtype=float)
         ax.barh(y, np.where(np.isfinite(vals), vals, 0.0), color=col)
-        ax.set_xscale("log") if np.nanmax(np.abs(vals), initial=0) > 0 and np.nanmin(vals[vals > 0], initial=1) > 0 else None
+        top = float(np.nanmax(vals, initial=0.0)) if np.isfinite(vals).any() else 1.0
+        ax.set_xlim(0.0, 1.25 * top if top > 0 else 1.0)  # bars start at zero: lengths compare
+        for yi, v in zip(y, vals):
+            ax.text(v if np.isfinite(v) else 0.0, yi, f" {v:.3g}" if np.isfinite(v) else " failed", va="center",
+                    fontsize=7)
         ax.set_xlabel(f"95th pct Z {'rotation' if unit == 'deg' else 'translation'} error ({unit})")
+        ax.grid(True, axis="x", alpha=0.3)
     a1.set_yticks(y, names)
     a1.invert_yaxis()
     fig.suptitle(title or "Sensitivity: one tolerance at a time (nominal size) and all together")
@@ -93,11 +136,16 @@ def plot_budget(rows: list[dict], path, title="") -> Path:
     fig, ax = _fig(figsize=(7, 0.45 * len(rows) + 1.6))
     colors = ["tab:green" if v >= 1 else "tab:red" for v in np.nan_to_num(s, nan=1e9)]
     ax.barh(y, np.where(np.isfinite(s), np.maximum(s, 1e-4), 1e4), color=colors)
-    ax.axvline(1.0, color="k", lw=1, ls="--", label="given tolerance")
+    ax.axvline(1.0, color="k", lw=1, ls="--", label="given tolerance (scale 1)")
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color="tab:green", label="given tolerance meets the target (scale >= 1)"),
+               Patch(color="tab:red", label="must be tightened (scale < 1)")]
     ax.set_xscale("log")
     ax.set_yticks(y, [f"{n} ({r.get('max_value_label', '')})" for n, r in zip(names, rows)])
     ax.invert_yaxis()
     ax.set_xlabel("largest tolerance scale meeting the target at the 95th pct (x given value)")
-    ax.legend(fontsize=8)
+    ax.legend(handles=handles + ax.get_legend_handles_labels()[0], fontsize=8, loc="upper center",
+              bbox_to_anchor=(0.5, -0.28), ncol=2, frameon=False)
     fig.suptitle(title or "Tolerance budget")
     return _save(fig, path)

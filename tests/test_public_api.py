@@ -1,0 +1,58 @@
+"""The library surface: top-level names resolve, carry type hints, and the package is typed."""
+
+import inspect
+from pathlib import Path
+
+import numpy as np
+
+import lensforge as lf
+
+# signatures still partly unannotated (their modules are being reworked elsewhere, or arrived
+# with the real-bench workflow and the sensor model): annotate them and remove them from here
+_PENDING = {"optimize_design", "verify", "calibrate", "estimate", "plan", "read_robot_poses", "read_wfs",
+            "simulate_session", "ForwardModel.sensor_range"}
+
+
+def _callables():
+    for name in lf.__all__:
+        if name == "__version__":
+            continue
+        obj = getattr(lf, name)
+        if inspect.isfunction(obj):
+            yield name, obj
+        elif inspect.isclass(obj):
+            for k, v in vars(obj).items():
+                if inspect.isfunction(v) and not k.startswith("_"):
+                    yield f"{name}.{k}", v
+
+
+def test_every_public_name_resolves_and_is_annotated():
+    missing = []
+    for name, fn in _callables():
+        if name in _PENDING or name.split(".")[0] in _PENDING:
+            continue
+        sig = inspect.signature(fn)
+        for p, v in sig.parameters.items():
+            if p in ("self", "cls") or v.kind in (v.VAR_POSITIONAL, v.VAR_KEYWORD):
+                continue
+            if v.annotation is inspect.Parameter.empty:
+                missing.append(f"{name}({p})")
+        if sig.return_annotation is inspect.Signature.empty:
+            missing.append(f"{name} -> ?")
+    assert not missing, missing
+
+
+def test_package_is_typed():
+    assert (Path(lf.__file__).parent / "py.typed").exists()
+
+
+def test_zernike_and_pose_helpers_at_top_level_round_trip():
+    for j in range(1, 40):
+        assert lf.osa_to_noll(lf.noll_to_osa(j)) == j
+        assert lf.thorlabs_to_noll(lf.noll_to_thorlabs(j)) == j
+        assert lf.nm_to_noll(*lf.noll_to_nm(j)) == j
+    assert lf.noll_to_osa(4) == 4 and lf.noll_to_osa(2) == 2 and lf.noll_to_thorlabs(1) == 1  # defocus, tilt x, piston
+    x = np.array([1.0, -2.0, 3.0, 0.1, -0.2, 0.3])
+    np.testing.assert_allclose(lf.matrix_to_pose(lf.pose_to_matrix(x)), x, atol=1e-14)
+    T = lf.pose_to_matrix(x)
+    np.testing.assert_allclose(lf.invert_poses(T) @ T, np.eye(4), atol=1e-14)
