@@ -17,11 +17,6 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
-from ..design.design_file import save_design
-from ..design.optimize import optimize_design
-from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
-from ..optics.bench import Bench
-from ..verification.study import verify
 from .evaluate import evaluate_lenses, metrics_table
 
 
@@ -31,6 +26,12 @@ def demo(
     seed: int = typer.Option(0, "--seed", help="seed of the design and the study"),
 ):
     """Evaluate the paper lenses, design a Zernike lens, export it, verify it as built."""
+    from ..design.design_file import save_design
+    from ..design.optimize import optimize_design
+    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
+    from ..optics.bench import Bench
+    from ..verification.study import verify
+
     console = Console(stderr=True, width=160)
     out.mkdir(parents=True, exist_ok=True)
     bench = Bench.default()

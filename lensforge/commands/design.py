@@ -9,15 +9,8 @@ from typing import List, Optional
 import typer
 from rich.console import Console
 
-from ..design.compare import compare_rows, format_table
-from ..design.constraints import Constraints
-from ..design.design_file import load_design, save_design
-from ..design.optimize import optimize_design
-from ..design.robust import RobustSpec
 from ..errors import ConfigError
-from ..manufacturing.tolerances import load_tolerances
 from ..optics.lens import PAPER_LENSES, paper_lens
-from ..plots import design_plots
 from ._common import emit_json, info, load_bench_arg
 
 
@@ -60,6 +53,13 @@ def design(
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ):
     """Optimise a freeform lens and write its design file."""
+    from ..design.compare import compare_rows, format_table
+    from ..design.constraints import Constraints
+    from ..design.design_file import save_design
+    from ..design.optimize import optimize_design
+    from ..design.robust import RobustSpec
+    from ..manufacturing.tolerances import load_tolerances
+
     b = load_bench_arg(bench)
     spec = None
     if robust is not None:
@@ -93,6 +93,9 @@ def plot(
     json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
 ):
     """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
+    from ..design.design_file import load_design
+    from ..plots import design_plots
+
     key = design_file.split(":", 1)[-1].lower().replace("-", "_")
     if key in PAPER_LENSES:
         paths = design_plots(paper_lens(key), out, stem=f"paper_{key}")
@@ -113,6 +116,9 @@ def compare(
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
 ):
     """Table-1 analogue: all lenses evaluated on one bench."""
+    from ..design.compare import compare_rows, format_table
+    from ..design.constraints import Constraints
+
     b = load_bench_arg(bench)
     rows = compare_rows(items, b, Constraints(range_mm=range_mm, range_rad=math.radians(range_deg)))
     if json_out:

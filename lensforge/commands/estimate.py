@@ -11,8 +11,6 @@ import typer
 
 from ..errors import ConfigError
 from ..fileio import write_atomic
-from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
-from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
 from ._common import emit_json, info, load_bench_arg, load_lens_arg
 
 
@@ -28,6 +26,8 @@ def estimate_study(
 ):
     """Estimate each lens's pose from noisy measurements TRIALS times; report error
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
+    from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
+
     # ConfigError, not typer.Exit: under main()'s standalone_mode=False a typer.Exit
     # comes back as a return value and the exit status is lost
     if method not in ("lm", "ukf"):
@@ -64,6 +64,8 @@ def scenario(
     """The paper's calibration procedure in simulation: 12 convergence poses, 12
     calibration poses, lens poses estimated from noisy measurements, hand-eye
     solved with the estimator covariances; Z error vs its predicted bound."""
+    from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
+
     if design not in ("random", "oed", "both"):
         raise ConfigError(f"--poses: {design!r} is not random, oed or both")
     if method not in ("lm", "ukf"):

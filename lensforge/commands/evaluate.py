@@ -8,13 +8,13 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from ..optics.pose import DOF_NAMES
-from ..optics.sensitivity import metrics
 from ._common import emit_json, load_bench_arg, load_lens_arg
 
 
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
     """Metrics rows (JSON-ready) for each lens argument (paper name or design file)."""
+    from ..optics.sensitivity import metrics
+
     rows = []
     for name in names:
         lens, data = load_lens_arg(name)
@@ -26,6 +26,8 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
     """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF)."""
+    from ..optics.pose import DOF_NAMES
+
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 

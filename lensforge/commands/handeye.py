@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from ..calibration.handeye import solve_handeye
 from ..errors import ConfigError
 from ..fileio import read_json
 from ._common import emit_json, info
@@ -82,6 +81,8 @@ def handeye_cmd(
         help="report degenerate motion as observable=false instead of failing"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
+    from ..calibration.handeye import solve_handeye
+
     kw = load_poses(poses)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -8,16 +8,13 @@ from pathlib import Path
 import typer
 
 from ..fileio import dumps_json, write_atomic
-from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
 from ..optics.bench import load_bench
-from ..verification.budget import sensitivity_analysis, tolerance_budget
-from ..verification.runner import dask_client
-from ..verification.study import StudyConfig, verify
-from ..verification.study_plots import plot_budget, plot_error_histograms, plot_sensitivity
 from ._common import emit_json, info
 
 
 def _tolerances(path):
+    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+
     if path is None:
         return load_tolerances(DEFAULT_TOLERANCES_FILE) if Path(DEFAULT_TOLERANCES_FILE).exists() else Tolerances()
     return load_tolerances(path)
@@ -51,6 +48,9 @@ def study_cmd(
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
+    from ..verification.study import StudyConfig, verify
+    from ..verification.study_plots import plot_error_histograms
+
     tol = _tolerances(tolerances)
     cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg)
     b = load_bench(bench) if bench else None
@@ -96,6 +96,11 @@ def budget_cmd(
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
 ):
     """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
+    from ..verification.budget import sensitivity_analysis, tolerance_budget
+    from ..verification.runner import dask_client
+    from ..verification.study import StudyConfig
+    from ..verification.study_plots import plot_budget, plot_sensitivity
+
     tol = _tolerances(tolerances)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg)
     b = load_bench(bench) if bench else None
