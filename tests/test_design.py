@@ -19,6 +19,7 @@ MODELS = ("polynomial", "extended_polynomial", "zernike")
 
 def _run(bench, model, method, seed=0, evals=60, **kw):
     kw.setdefault("start", "random")
+    kw.setdefault("criterion", "J")
     return optimize_design(bench, model=model, method=method, seed=seed, max_evals=evals, progress=False,
                            particles=6, population=6, **kw)
 

@@ -11,7 +11,8 @@ import typer
 
 from ..errors import ConfigError
 from ..fileio import write_atomic
-from ._common import emit_json, info, load_bench_arg, load_lens_arg
+from ..progress import progress_bar
+from ._common import emit_json, info, lens_labels, load_bench_arg, load_lens_arg
 
 
 def estimate_study(
@@ -23,6 +24,7 @@ def estimate_study(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     out: Path = typer.Option(Path("exports/estimate"), "-o", "--out", help="output folder (JSON, per-trial CSV, box plot PNG)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Estimate each lens's pose from noisy measurements TRIALS times; report error
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
@@ -35,13 +37,13 @@ def estimate_study(
     if trials < 1 or ukf_repeats < 1:
         raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
+    loaded = [load_lens_arg(arg) for arg in lenses]  # every argument checked before the long work
     results = []
-    for arg in lenses:
-        lens, data = load_lens_arg(arg)
-        b = load_bench_arg(bench, data)
-        name = Path(arg).stem if Path(arg).suffix else arg
-        info(f"{name}: {trials} estimates ({method}) ...")
-        results.append(study_lens(b, lens, name, trials, method, seed, **opts))
+    with progress_bar(trials * len(lenses), "estimates", not (no_progress or json_out)) as bar:
+        for name, (lens, data) in zip(lens_labels(lenses), loaded):
+            bar.describe(f"{name}: {method} estimates")
+            results.append(study_lens(load_bench_arg(bench, data), lens, name, trials, method, seed, tick=bar.advance,
+                                      **opts))
     meta = {"method": method, "trials": trials, "seed": seed,
             **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
     paths = save_study(results, out, **meta)
@@ -60,6 +62,7 @@ def scenario(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """The paper's calibration procedure in simulation: 12 convergence poses, 12
     calibration poses, lens poses estimated from noisy measurements, hand-eye
@@ -76,8 +79,9 @@ def scenario(
     b = load_bench_arg(bench, data)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)
-    info(f"scenario: {runs} calibrations x {', '.join(designs)} poses ...")
-    rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed)
+    with progress_bar(runs * len(designs), f"calibrations ({', '.join(designs)} poses)",
+                      not (no_progress or json_out)) as bar:
+        rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed, tick=bar.advance)
     rep = {"schema_version": 1, "lens": lens, **rep}
     path = write_atomic(Path(out) / "scenario.json", json.dumps(rep, indent=2, allow_nan=False))
     if json_out:

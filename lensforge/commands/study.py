@@ -48,6 +48,7 @@ def study_cmd(
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
+    from ..verification.statistics import format_counts
     from ..verification.study import StudyConfig, verify
     from ..verification.study_plots import plot_error_histograms
 
@@ -73,11 +74,24 @@ def study_cmd(
              f"max {_fmt(v['max'], unit)}")
     info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
          f"{'met' if s['meets_target'] else 'NOT met'}")
-    if s["failures"]:
-        info(f"  failures: {s['failures']}")
+    info(f"  {format_counts(s)}")
     info(f"wrote {out / 'store.sqlite'}, {out / 'summary.json'}, {out / 'errors.png'}")
     if json_out:
         emit_json(d)
+
+def budget_advice(bud) -> list[str]:
+    """What the budget means, in words: the limiting tolerance, or why there is none and what to change."""
+    p = f"p{bud.percentile:g}"
+    if bud.noise_ratio is None or bud.noise_ratio > 1.0:
+        how = ("fails too often" if bud.noise_ratio is None
+               else f"misses it {bud.noise_ratio:.3g}x")
+        return [f"no tolerance fits: even a perfect lens (noise only) {how} at {p}, so every max scale is 0.",
+                "Budget relative to the noise-only error instead (--relative-to-noise 2 allows twice it), "
+                "or loosen --target-mm / --target-deg."]
+    if bud.dominant is None:
+        return ["no tolerance limits the calibration within the searched range (up to 1000x its given size)."]
+    return [f"dominant: {bud.dominant} (the tolerance with the smallest max scale; tighten it first)."]
+
 
 def budget_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
@@ -94,6 +108,7 @@ def budget_cmd(
     bench: Path = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
     from ..verification.budget import sensitivity_analysis, tolerance_budget
@@ -106,11 +121,12 @@ def budget_cmd(
     b = load_bench(bench) if bench else None
     out.mkdir(parents=True, exist_ok=True)
     with dask_client(workers, scheduler) as cl:
-        kw = dict(config=cfg, client=cl, workers=0)
+        kw = dict(config=cfg, client=cl, workers=0, progress=not (no_progress or json_out))
         bud = tolerance_budget(design, tol, target_mm=target_mm, target_deg=target_deg, n_lenses=lenses,
                                seed=seed, bench=b, relative_to_noise=relative, **kw)
         cfg2 = StudyConfig(n_poses=poses, target_mm=bud.target_mm, target_deg=bud.target_deg)
-        sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0)
+        sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0,
+                                    progress=kw["progress"])
     d = {"schema_version": 1, "design": str(design), **bud.to_dict(),
          "sensitivity": [r.to_dict() for r in sens], "tolerances": tol.to_dict()}
     _write_json(out / "budget.json", d)
@@ -131,7 +147,8 @@ def budget_cmd(
         mv = "-" if r.max_value is None else f"{r.max_value:.3g}"
         gv = "-" if r.given_value is None else f"{r.given_value:.3g}"
         info(f"  {r.component:<10} {gv:>12} {ms:>10} {mv:>12}  {r.unit} / {r.status}")
-    info(f"  dominant: {bud.dominant}")
+    for line in budget_advice(bud):
+        info(f"  {line}")
     info(f"wrote {out / 'budget.json'}, {out / 'budget.png'}, {out / 'sensitivity.png'}")
     if json_out:
         emit_json(d)

@@ -365,8 +365,8 @@ def _plain_stop(v):
 
 # --- public entry point ----------------------------------------------------------
 
-def optimize_design(bench: Bench | None = None, model: str = "zernike", method: str = "nelder-mead", seed: int = 0,
-                    criterion: str = "J", weights=(1.0, 1.0), free=None, bounds=None,
+def optimize_design(bench: Bench | None = None, model: str = "zernike", method: str = "cmaes", seed: int = 0,
+                    criterion: str = "A", weights=(1.0, 1.0), free=None, bounds=None,
                     constraints: Constraints | None = None, max_evals: int | None = None, start="paper",
                     n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.1,
                     ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,

@@ -39,6 +39,7 @@ from ..optics.sensitivity import sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
+from .statistics import median
 
 __all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
            "SCHEMA_VERSION"]
@@ -110,9 +111,9 @@ class LensStudy:
             "failure_rate": (n - k) / n if n else nan,
             "pupil_lost": int(np.sum(self.status == PUPIL_LOST)),
             "not_converged": int(np.sum(self.status == NOT_CONVERGED)),
-            "median_translation_error_um": float(np.median(t) * 1e3) if k else nan,
+            "median_translation_error_um": median(t) * 1e3 if k else nan,
             "std_translation_error_um": float(np.std(t, ddof=1) * 1e3) if k > 1 else nan,
-            "median_rotation_error_urad": float(np.median(r) * 1e6) if k else nan,
+            "median_rotation_error_urad": median(r) * 1e6 if k else nan,
             "std_rotation_error_urad": float(np.std(r, ddof=1) * 1e6) if k > 1 else nan,
             "norm_of_dof_std_translation_um": float(np.linalg.norm(np.std(e[:, :3] * self.observable[:3], axis=0, ddof=1)) * 1e3) if k > 1 else nan,
             "norm_of_dof_std_rotation_urad": float(np.linalg.norm(np.std(e[:, 3:] * self.observable[3:], axis=0, ddof=1)) * 1e6) if k > 1 else nan,
@@ -159,8 +160,9 @@ def swing_equivalent(x: np.ndarray) -> np.ndarray:
 
 
 def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, method: str = "lm", seed: int = 0,
-               initial: InitialPoseModel | None = None, commanded=None, **estimator_options) -> LensStudy:
-    """Run ``trials`` seeded estimates of one lens (see module docstring)."""
+               initial: InitialPoseModel | None = None, commanded=None, tick=None, **estimator_options) -> LensStudy:
+    """Run ``trials`` seeded estimates of one lens (see module docstring); ``tick()`` is called
+    after each trial (a progress bar's advance)."""
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not one of {', '.join(METHODS)}")
     if int(trials) != trials or trials < 1:
@@ -188,6 +190,8 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
     t0 = time.perf_counter()
     lim = bench.pose_limits
     for i, child in enumerate(children):
+        if tick is not None and i:
+            tick()  # trial i - 1 is done (the body below leaves early with ``continue``)
         rng = np.random.default_rng(child)
         x = c + rng.normal(size=6) * initial.sigma
         x[:3] = np.clip(x[:3], -lim.translation_mm, lim.translation_mm)
@@ -223,6 +227,8 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
         chi2[i] = est.chi2
         nees[i] = est.nees(xs)
         crlb[i] = _crlb_var(model, xs)
+    if tick is not None:
+        tick()
     seconds = time.perf_counter() - t0
     return LensStudy(name=name, method=method, errors=errors, true_poses=truth, status=status.astype(str),
                      reported_std=rstd, crlb_var=crlb, chi2=chi2, nees=nees, n_evals=nev, dof=dof,

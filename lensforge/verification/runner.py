@@ -36,6 +36,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ConfigError
+from ..progress import progress_bar
 
 __all__ = ["TrialStore", "config_hash", "trial_seeds", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV"]
 
@@ -160,19 +161,6 @@ class RunStats:
     workers: int
 
 
-def _progress(enabled: bool, total: int, done: int, description: str):
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    prog = Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TimeElapsedColumn(), TimeRemainingColumn(),
-        console=Console(stderr=True), disable=not enabled, transient=False,
-    )
-    task = prog.add_task(description or "trials", total=total, completed=done)
-    return prog, task
-
-
 def _pin_threads() -> None:
     """Run on each worker: one BLAS and one numba thread."""
     for k, v in SINGLE_THREAD_ENV.items():
@@ -221,24 +209,24 @@ def run_trials(
             store.put(i, rec)
         records[i] = rec
 
-    prog, task = _progress(progress, n_trials, n_resumed, description)
     if client is not None:
         mode = "client"
     else:
         mode = "serial" if (scheduler is None and workers == 0) else ("scheduler" if scheduler else "local")
     n_workers = 0
-    with prog:
+    with progress_bar(n_trials, description or "trials", progress) as bar:
+        bar.advance(n_resumed)
         if not todo:
             pass
         elif mode == "serial":
             for i in todo:
                 finish(i, trial_fn(context, i, seeds[i]))
-                prog.advance(task)
+                bar.advance()
         elif client is not None:
-            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
+            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, bar.advance)
         else:
             with dask_client(workers, scheduler) as cl:
-                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
+                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, bar.advance)
     stats = RunStats(len(todo), n_resumed, time.perf_counter() - t0, mode, n_workers)
     return {i: records[i] for i in sorted(records)}, stats
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import write_atomic
+from .statistics import percentile
 
 __all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget"]
 
@@ -35,8 +36,8 @@ def _save(fig, path) -> Path:
 
 
 def _hist(ax, values, target, label, unit):
-    v = np.asarray(values, dtype=float)
-    v = v[np.isfinite(v)]
+    all_v = np.asarray(values, dtype=float)  # nan = failed trial: counts in the percentiles as +inf
+    v = all_v[np.isfinite(all_v)]
     if v.size == 0:
         ax.text(0.5, 0.5, "no successful trial", ha="center", transform=ax.transAxes)
         return
@@ -48,7 +49,11 @@ def _hist(ax, values, target, label, unit):
         bins = 40
     ax.hist(v, bins=bins, color="tab:blue", alpha=0.8)
     for q, ls in ((50, "-"), (95, "--")):
-        ax.axvline(np.percentile(v, q), color="k", ls=ls, lw=1, label=f"{q}th pct {np.percentile(v, q):.3g} {unit}")
+        pq = percentile(all_v, q)  # the same statistic as the console and the JSON summary
+        if pq is None:
+            ax.plot([], [], color="k", ls=ls, lw=1, label=f"{q}th pct: a failed trial")
+        else:
+            ax.axvline(pq, color="k", ls=ls, lw=1, label=f"{q}th pct {pq:.3g} {unit}")
     if target is not None:
         ax.axvline(target, color="tab:red", lw=1.5, label=f"target {target:g} {unit}")
     ax.set_xlabel(f"{label} ({unit})")
