@@ -27,11 +27,11 @@ def _weights(text: str) -> tuple[float, float]:
 
 def design(
     model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
-    method: str = typer.Option("nelder-mead", "--method", help="nelder-mead | pso | ga | cmaes"),
+    method: str = typer.Option("cmaes", "--method", help="cmaes (CMA-ES) | nelder-mead | pso | ga"),
     seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
-    criterion: str = typer.Option("J", "--criterion", help="J (paper) | D (D-optimal) | A (A-optimal)"),
+    criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min)"),
     weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
-    free: Optional[str] = typer.Option(None, "--free", help="preset (paper, full, zernike: base) or comma list of parameter names"),
+    free: Optional[str] = typer.Option(None, "--free", help="which lens parameters the optimiser may change: 'full' (default for zernike: thickness, both base curvatures, Noll 1-8 per surface), 'paper' (the paper's set), 'base' (zernike only: paper set + base curvatures), or a comma list of names such as thickness,front.coefficients[3]; default: full for zernike, paper for the other models"),
     bounds: Optional[str] = typer.Option(None, "--bounds", help="overrides 'name=lo:hi,...', e.g. thickness=4:8"),
     max_evals: Optional[int] = typer.Option(None, "--max-evals", help="cost evaluations (default per method)"),
     start: str = typer.Option("paper", "--start", help="paper (template vector if feasible) | random"),
@@ -53,7 +53,7 @@ def design(
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ):
     """Optimise a freeform lens and write its design file."""
-    from ..design.compare import compare_rows, format_table
+    from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
     from ..design.design_file import save_design
     from ..design.optimize import optimize_design
@@ -85,7 +85,10 @@ def design(
             r = d.robust
             info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "
                  f"(seed {r['seed']}, {r['n_failed']} unmeasurable); nominal {r['nominal']:.5g}")
-        Console(stderr=True, width=200).print(format_table(compare_rows([d], b, cons)))
+        rows = compare_rows([d], b, cons)
+        Console(stderr=True, width=200).print(format_table(rows))
+        for note in feasibility_notes(rows):
+            info(f"infeasible: {note}")
 
 def plot(
     design_file: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
@@ -116,7 +119,7 @@ def compare(
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
 ):
     """Table-1 analogue: all lenses evaluated on one bench."""
-    from ..design.compare import compare_rows, format_table
+    from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
 
     b = load_bench_arg(bench)
@@ -125,3 +128,5 @@ def compare(
         emit_json({"schema_version": 1, "rows": rows})
     else:
         Console(stderr=True, width=220).print(format_table(rows))
+        for note in feasibility_notes(rows):
+            info(f"infeasible: {note}")

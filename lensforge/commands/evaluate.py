@@ -8,37 +8,39 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from ._common import emit_json, load_bench_arg, load_lens_arg
+from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns
+from ._common import emit_json, lens_labels, load_bench_arg, load_lens_arg
 
 
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
     """Metrics rows (JSON-ready) for each lens argument (paper name or design file)."""
+    from ..optics.pose import DOF_NAMES
     from ..optics.sensitivity import metrics
 
     rows = []
-    for name in names:
+    for name, label in zip(names, lens_labels(names)):
         lens, data = load_lens_arg(name)
         bench = load_bench_arg(bench_path, data)
         m = metrics(bench, lens)
-        rows.append({"lens": name, "description": lens.name, **m.to_dict()})
+        row = {"lens": label, "description": lens.name, **m.to_dict()}
+        # DESIGN.md's statistical rule: 1-sigma bound above the pose scale (or infinite)
+        row.setdefault("unobservable", [d for d, s, sc in zip(DOF_NAMES, m.crlb_std, bench.pose_scales)
+                                        if not s <= sc])
+        rows.append(row)
     return rows
 
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
     """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF)."""
-    from ..optics.pose import DOF_NAMES
-
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 
-    t = Table(title=title)
-    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)]:
+    t = Table(title=title, caption=UNOBSERVABLE_NOTE)
+    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + crlb_columns():
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
-        std = r["crlb_std"]
-        keys = [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]
         t.add_row(r["lens"], str(r["rank"]), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
-                  *[fmt(std[k]) for k in keys])
+                  *crlb_cells(r["crlb_std"], unobservable=r.get("unobservable", ())))
     return t
 
 

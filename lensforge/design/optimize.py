@@ -42,7 +42,7 @@ __all__ = ["METHODS", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "
 METHODS = ("nelder-mead", "pso", "ga", "cmaes")
 _ALIASES = {"nm": "nelder-mead", "nelder_mead": "nelder-mead", "neldermead": "nelder-mead", "simplex": "nelder-mead",
             "cma": "cmaes", "cma-es": "cmaes", "cma_es": "cmaes", "genetic": "ga", "swarm": "pso"}
-DEFAULT_MAX_EVALS = {"nelder-mead": 1000, "pso": 3000, "ga": 3000, "cmaes": 1500}  # ~30 ms per evaluation
+DEFAULT_MAX_EVALS = {"nelder-mead": 1000, "pso": 3000, "ga": 3000, "cmaes": 800}  # ~30 ms per evaluation
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
 _N_CANDIDATES = 10
