@@ -39,6 +39,7 @@ from ..optics.sensitivity import sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
+from ..display import UNOBSERVABLE, UNOBSERVABLE_NOTE
 from .statistics import median
 
 __all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
@@ -249,19 +250,24 @@ def _fmt(v, nd=1):
 
 
 def format_table(results: list[LensStudy]) -> str:
-    """Plain-text table (translation um, rotation urad)."""
-    head = (f"{'lens':<22}{'method':<7}{'fail':>6}{'med|t| um':>11}{'std|t| um':>11}{'med|r| urad':>13}"
-            f"{'std|r| urad':>13}  RMSE/CRLB tx ty tz rx ry rz{'':>6}{'NEES/dof':>9}{'chi2/dof':>9}{'ms':>7}")
+    """Plain-text table (translation um, rotation urad; fail = share of failed trials, lost = pupil
+    lost, unconv = not converged), then a legend line."""
+    head = (f"{'lens':<22}{'method':<7}{'fail':>6}{'lost':>5}{'unconv':>7}{'med|t| um':>11}{'std|t| um':>11}"
+            f"{'med|r| urad':>13}{'std|r| urad':>13}  RMSE/CRLB tx ty tz rx ry rz{'':>6}{'NEES/dof':>9}{'chi2/dof':>9}{'ms':>7}")
     lines = [head]
     for r in results:
         s = r.summary()
-        ratio = " ".join(_fmt(s["rmse_over_crlb"][d], 2).rjust(4) for d in DOF_NAMES)
+        ratio = " ".join((UNOBSERVABLE if d in s["unobservable"] else _fmt(s["rmse_over_crlb"][d], 2)).rjust(4)
+                         for d in DOF_NAMES)
         lines.append(
-            f"{s['lens'][:21]:<22}{s['method']:<7}{100 * s['failure_rate']:>5.0f}%{_fmt(s['median_translation_error_um']):>11}"
+            f"{s['lens'][:21]:<22}{s['method']:<7}{100 * s['failure_rate']:>5.0f}%{s['pupil_lost']:>5}"
+            f"{s['not_converged']:>7}{_fmt(s['median_translation_error_um']):>11}"
             f"{_fmt(s['std_translation_error_um']):>11}{_fmt(s['median_rotation_error_urad']):>13}"
             f"{_fmt(s['std_rotation_error_urad']):>13}  {ratio:<32}{_fmt(s['mean_nees_per_dof'], 2):>9}"
             f"{_fmt(s['mean_chi2_dof'], 2):>9}{_fmt(s['ms_per_estimate'], 0):>7}"
         )
+    lines.append(f"fail: failed trials (lost: the pose left the SH pupil dark; unconv: the estimator did not "
+                 f"converge); {UNOBSERVABLE_NOTE}")
     return "\n".join(lines)
 
 

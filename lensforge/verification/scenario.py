@@ -410,10 +410,14 @@ def compare_pose_designs(bench: Bench, lens: Lens, cfg: ScenarioConfig | None = 
 def format_comparison(rep: dict) -> str:
     """Plain-text table of compare_pose_designs (um, urad)."""
     lines = [f"{'poses':<8}{'runs':>5}{'|dZ_t| rms um':>15}{'pred um':>9}{'bound um':>10}{'|dZ_r| rms urad':>17}"
-             f"{'pred urad':>11}{'bound urad':>12}{'NEES/dof':>10}{'chi2/dof':>10}{'lost':>6}"]
+             f"{'pred urad':>11}{'bound urad':>12}{'NEES/dof':>10}{'chi2/dof':>10}{'lost':>6}{'unconv':>8}"
+             f"{'degen':>7}"]
     for d, s in rep["designs"].items():
         lines.append(f"{d:<8}{s['runs']:>5}{s['Z_translation_error_rms_um']:>15.1f}{s['Z_translation_predicted_rms_um']:>9.1f}"
                      f"{s['Z_design_bound_translation_um']:>10.1f}{s['Z_rotation_error_rms_urad']:>17.1f}"
                      f"{s['Z_rotation_predicted_rms_urad']:>11.1f}{s['Z_design_bound_rotation_urad']:>12.1f}"
-                     f"{s['mean_nees_Z_per_dof']:>10.2f}{s['mean_chi2_dof']:>10.2f}{s['pupil_lost']:>6}")
+                     f"{s['mean_nees_Z_per_dof']:>10.2f}{s['mean_chi2_dof']:>10.2f}{s['pupil_lost']:>6}"
+                     f"{s['not_converged']:>8}{s['flagged_degenerate']:>7}")
+    lines.append("lost: poses whose beam left the SH pupil dark; unconv: pose estimates that did not converge; "
+                 "degen: calibrations flagged as degenerate motion")
     return "\n".join(lines)
