@@ -40,7 +40,7 @@ from ..optics.shack_hartmann import ForwardModel
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
 from ..display import UNOBSERVABLE, UNOBSERVABLE_NOTE
-from .statistics import median
+from .statistics import box_stats, median
 
 __all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
            "SCHEMA_VERSION"]
@@ -296,11 +296,11 @@ def plot_study(results: list[LensStudy], path) -> "Path":
     labels = [f"{r.name}\n({r.method})" for r in results]
     for j, ax in enumerate(axes.flat):
         unit, sc = ("um", 1e3) if j < 3 else ("urad", 1e6)
-        data = []
+        boxes = []
         for r in results:
             e = r.errors[r.ok, j] * sc if DOF_NAMES[j] not in r.unobservable else np.array([])
-            data.append(e if e.size else np.array([np.nan]))
-        ax.boxplot(data, showfliers=True, flierprops={"markersize": 2})
+            boxes.append(box_stats(e))
+        ax.bxp(boxes, showfliers=True, flierprops={"markersize": 2})
         ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7, rotation=20)
         ax.axhline(0.0, color="0.6", lw=0.6)
         ax.set_title(f"{DOF_NAMES[j]} error ({unit})", fontsize=9)

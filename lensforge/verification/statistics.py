@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-__all__ = ["PERCENTILE_METHOD", "percentile", "median", "error_stats", "outcome_counts", "format_counts"]
+__all__ = ["PERCENTILE_METHOD", "percentile", "median", "error_stats", "box_stats", "outcome_counts", "format_counts"]
 
 PERCENTILE_METHOD = "higher"
 
@@ -43,6 +43,20 @@ def median(values) -> float:
 def error_stats(values, q: float = 95.0) -> dict:
     """{"median", "p<q>", "max"} of ``values`` (None where a failure decides it)."""
     return {"median": percentile(values, 50), f"p{q:g}": percentile(values, q), "max": percentile(values, 100)}
+
+
+def box_stats(values) -> dict:
+    """Box-plot statistics (matplotlib ``Axes.bxp``) from :func:`percentile`: quartiles, Tukey
+    whiskers (the most extreme samples within 1.5 IQR of the box) and the samples beyond them."""
+    v = np.asarray(values, dtype=float).ravel()
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"med": np.nan, "q1": np.nan, "q3": np.nan, "whislo": np.nan, "whishi": np.nan, "fliers": []}
+    q1, med, q3 = percentile(v, 25), percentile(v, 50), percentile(v, 75)
+    lo, hi = q1 - 1.5 * (q3 - q1), q3 + 1.5 * (q3 - q1)
+    inside = v[(v >= lo) & (v <= hi)]
+    return {"med": med, "q1": q1, "q3": q3, "whislo": float(inside.min()), "whishi": float(inside.max()),
+            "fliers": v[(v < lo) | (v > hi)]}
 
 
 def outcome_counts(records) -> dict:
