@@ -172,3 +172,14 @@ def test_default_zernike_design_is_the_good_lens(bench):
     assert m.rank == 6
     assert np.all(m.crlb_std <= np.asarray(bench.pose_scales))  # DESIGN.md's observability rule
     assert np.all(m.crlb_std[:3] <= 0.010) and np.all(m.crlb_std[3:] <= 1e-3)
+
+
+@pytest.mark.parametrize("command", ["design", "budget", "estimate-study", "scenario", "study"])
+def test_long_commands_have_no_progress_and_flags_show_no_bool_metavar(command):
+    from typer.testing import CliRunner
+
+    from lensforge.cli import app
+
+    r = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
+    assert r.exit_code == 0
+    assert "--no-progress" in r.output and "<bool>" not in r.output
