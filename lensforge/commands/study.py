@@ -149,6 +149,11 @@ def budget_cmd(
         info(f"  {r.component:<10} {gv:>12} {ms:>10} {mv:>12}  {r.unit} / {r.status}")
     for line in budget_advice(bud):
         info(f"  {line}")
+    info(f"sensitivity ({lenses} as-built lenses per row, each tolerance alone at its given size):")
+    info(f"  {'component':<10} {'p95 Z rotation':>16} {'p95 Z translation':>18} {'failed lenses':>14}")
+    for r in sens:
+        info(f"  {r.component:<10} {_fmt(r.p95_rot_deg, 'deg'):>16} {_fmt(r.p95_trans_mm, 'mm'):>18} "
+             f"{round(r.failure_rate * lenses):>7} of {lenses}")
     info(f"wrote {out / 'budget.json'}, {out / 'budget.png'}, {out / 'sensitivity.png'}")
     if json_out:
         emit_json(d)
