@@ -22,7 +22,7 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
         lens, data = load_lens_arg(name)
         bench = load_bench_arg(bench_path, data)
         m = metrics(bench, lens)
-        row = {"lens": label, "description": lens.name, **m.to_dict()}
+        row = {"lens": name, "label": label, "description": lens.name, **m.to_dict()}
         # DESIGN.md's statistical rule: 1-sigma bound above the pose scale (or infinite)
         row.setdefault("unobservable", [d for d, s, sc in zip(DOF_NAMES, m.crlb_std, bench.pose_scales)
                                         if not s <= sc])
@@ -39,7 +39,7 @@ def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, n
     for col in ["lens", "rank", "kappa", "sigma_min", "J"] + crlb_columns():
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
-        t.add_row(r["lens"], str(r["rank"]), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
+        t.add_row(r.get("label", r["lens"]), str(r["rank"]), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
                   *crlb_cells(r["crlb_std"], unobservable=r.get("unobservable", ())))
     return t
 
