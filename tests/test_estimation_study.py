@@ -96,7 +96,7 @@ def test_cli_estimate_study_json(tmp_path):
              "--json")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
-    assert [x["lens"] for x in d["lenses"]] == ["paper:polynomial", "paper:spherical"]
+    assert [x["lens"] for x in d["lenses"]] == ["paper polynomial", "paper spherical"]
     assert d["trials"] == 3 and d["method"] == "lm"
     assert (tmp_path / "estimate_study.png").exists() and (tmp_path / "estimate_study.json").exists()
 

@@ -1,6 +1,7 @@
 """First contact (issue 13): fast first run, one statistics function, clear output, progress, good defaults."""
 
 import io
+import json
 import subprocess
 import sys
 
@@ -100,16 +101,12 @@ def test_unobservable_has_one_spelling_and_columns_carry_units():
     assert cells[-1] == UNOBSERVABLE and cells[0] == "3"
 
 
-def test_lens_labels_tell_paper_lenses_from_design_files(tmp_path):
-    from lensforge.commands._common import lens_labels
+def test_lens_labels_tell_paper_lenses_from_design_files(tmp_path, bench):
+    from lensforge.optics.lens import resolve_lens
 
     f = tmp_path / "zernike.json"
-    f.write_text("{}")
-    assert lens_labels(["zernike", str(f)]) == ["paper:zernike", "zernike.json"]
-    g = tmp_path / "b"
-    g.mkdir()
-    (g / "zernike.json").write_text("{}")
-    assert lens_labels([str(f), str(g / "zernike.json")]) == [str(f), str(g / "zernike.json")]
+    f.write_text(json.dumps({"lens": lf.paper_lens("zernike").to_dict()}))
+    assert resolve_lens("zernike").label != resolve_lens(str(f)).label == "zernike"
 
 
 def test_budget_advice_suggests_relative_target_when_noise_alone_misses():

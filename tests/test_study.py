@@ -10,8 +10,8 @@ import pytest
 from lensforge.errors import ConfigError
 from lensforge.manufacturing.tolerances import Tolerances
 from lensforge.optics.shack_hartmann import ForwardModel
-from lensforge.calibration.pose_estimation import estimate_pose_model
-from lensforge.verification.study import StudyConfig, estimate_poses_batch, verify
+from lensforge.calibration.pose_estimation import estimate_pose_model, estimate_poses_batch
+from lensforge.verification.study import StudyConfig, verify
 
 CFG = StudyConfig(n_poses=8, min_poses=4)
 
@@ -111,9 +111,11 @@ def test_self_calibration_recovers_index_and_z_from_exact_data():
     from lensforge.calibration.robot import flange_pose
     from lensforge.optics.pose import matrix_to_pose, pose_to_matrix, transform_error
     from lensforge.verification.self_calibration import perturbed_lens, self_calibrate
-    from lensforge.verification.study import make_context, resolve_lens
+    from lensforge.optics.lens import resolve_lens
+    from lensforge.verification.study import make_context
 
-    lens, bench = resolve_lens("extended_polynomial")
+    r = resolve_lens("extended_polynomial")
+    lens, bench = r.lens, r.bench_or()
     ctx = make_context(lens, bench, None, StudyConfig(n_poses=8))
     sc = ctx.scene
     A = flange_pose(sc, ctx.plan, check_reach=False)

@@ -40,8 +40,9 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import CalibrationError
-from ..optics.pose import (adjoint, invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right,
+from ..optics.pose import (DOF_NAMES, adjoint, invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right,
                            right_jacobian_so3, rotations, skew)
+from ..optics.sensitivity import observability
 
 __all__ = [
     "HandEyeResult",
@@ -49,25 +50,28 @@ __all__ = [
     "handeye_jacobian",
     "handeye_fisher",
     "residual_covariances",
-    "observability",
-    "adjoint",
-    "invert_poses",
-    "pose_vector_cov_to_right",
+    "handeye_observability",
     "METHODS",
+    "DEGENERATE_RTOL",
+    "OBS_LIMITS",
 ]
 
 METHODS = ("ml", "shah", "li")
 
-# A direction of (X, Z) counts as unobservable when it is numerically null (relative
-# singular value of the column-equilibrated whitened Jacobian below _RTOL_ABS) or when
-# the data cannot pin it down: its predicted 1-sigma (Fisher information) exceeds
-# _OBS_LIMIT_MM along a translation or _OBS_LIMIT_RAD along a rotation. Judging by
-# the honest covariance rather than by the singular values alone keeps small but
-# well-measured motions (e.g. +-1 deg with 1 mrad lens-pose noise) observable.
-# ASSUMPTION: 1 mm and 0.01 rad are far beyond any useful calibration.
-_RTOL_ABS = 1e-9
-_OBS_LIMIT_MM = 1.0
-_OBS_LIMIT_RAD = 0.01
+# Observability of (X, Z) (optics.sensitivity.observability, DESIGN.md's rule):
+# - degenerate: a direction the motion itself lacks (pure translations, rotations about
+#   one axis): relative singular value of the column-equilibrated whitened Jacobian
+#   below DEGENERATE_RTOL. The noise scales all rows alike and cannot change this test.
+#   Its 1-sigma is inf. solve_handeye refuses it by default (on_degenerate="raise").
+# - weak: the data cannot pin a direction to within OBS_LIMITS (predicted 1-sigma from
+#   the Fisher information above limit_mm along a translation or limit_rad along a
+#   rotation). Merely noisy: solved, reported observable=False, warned about, never
+#   refused. Settable per call (obs_limits=).
+# ASSUMPTION: 1 mm and 0.01 rad are far beyond any useful calibration; DEGENERATE_RTOL
+# 1e-4 sits between pure translation with 1e-5 rad lens-pose noise (~1e-5) and +-1 deg
+# of rotation (~5e-3).
+DEGENERATE_RTOL = 1e-4
+OBS_LIMITS = (1.0, 0.01)  # (mm, rad)
 _ORTHO_TOL = 1e-6  # |R^T R - I| tolerated in input rotations
 
 
@@ -343,10 +347,13 @@ def _null_basis_names(N: np.ndarray, length_mm: float) -> list[str]:
     return names
 
 
-def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
-    """Observability of (X, Z) from lens poses B: singular values of the whitened
-    Jacobian (physical units 1/mm, 1/rad), relative singular values of its column-
-    equilibrated form, the tolerance used, `observable` and named null directions."""
+def handeye_observability(B, X, sigma=None, cov_B=None, S=None, obs_limits=OBS_LIMITS) -> dict:
+    """Observability of (X, Z) from lens poses B (see DEGENERATE_RTOL / OBS_LIMITS):
+    singular values of the whitened Jacobian (physical units 1/mm, 1/rad), relative
+    singular values of its column-equilibrated form, the thresholds used, `observable`
+    (no degenerate and no weak direction), `degenerate` (some direction is null), the
+    per-parameter 1-sigma (12,: X then Z; inf where degenerate) and named unobservable
+    directions (weak ones first)."""
     B = np.asarray(B, dtype=float)
     n = B.shape[0]
     if S is None:
@@ -356,19 +363,15 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
     sv_phys = np.linalg.svd(Jw, compute_uv=False)
     d = np.linalg.norm(Jw, axis=0)
     d[d == 0] = 1.0
-    _, s, Vt = np.linalg.svd(Jw / d, full_matrices=False)
-    rel = s / s[0]
-    # predicted covariance in limit-scaled units: eigenvalues > 1 are directions the data
-    # cannot pin to within the limits
-    lim = np.array(([_OBS_LIMIT_MM] * 3 + [_OBS_LIMIT_RAD] * 3) * 2)
-    Js = Jw * lim
-    _, ss, Vts = np.linalg.svd(Js, full_matrices=False)
-    numerically_null = (ss / ss[0]) < _RTOL_ABS
-    loose = np.zeros_like(numerically_null)
-    loose[~numerically_null] = ss[~numerically_null] < 1.0  # std along direction > limit
-    null = numerically_null | loose
-    tol = {"rtol": _RTOL_ABS, "limit_mm": _OBS_LIMIT_MM, "limit_rad": _OBS_LIMIT_RAD}
-    N = Vts[null].T * lim[:, None]  # back to physical units
+    rel = np.linalg.svd(Jw / d, compute_uv=False)
+    rel = rel / rel[0]
+    lim_mm, lim_rad = (float(v) for v in obs_limits)
+    if not (lim_mm > 0 and lim_rad > 0):
+        raise CalibrationError(f"obs_limits: expected two positive numbers (mm, rad), got {obs_limits!r}")
+    lim = np.array(([lim_mm] * 3 + [lim_rad] * 3) * 2)
+    ob = observability(Jw, lim, DEGENERATE_RTOL, equilibrate=True,
+                                   names=tuple(f"X.{p}" for p in DOF_NAMES) + tuple(f"Z.{p}" for p in DOF_NAMES))
+    N = np.concatenate([ob.weak_space, ob.null_space], axis=1) * lim[:, None]  # back to physical units
     if N.shape[1]:
         N = N / np.linalg.norm(N, axis=0)
     length = max(float(np.sqrt(np.mean(np.sum(B[:, :3, 3] ** 2, axis=1)))), 10.0)
@@ -376,14 +379,21 @@ def observability(B, X, sigma=None, cov_B=None, S=None) -> dict:
     return {
         "singular_values": sv_phys,
         "relative_singular_values": rel,
-        "tolerance": tol,
-        "observable": not bool(null.any()),
+        "tolerance": {"degenerate_rtol": DEGENERATE_RTOL, "limit_mm": lim_mm, "limit_rad": lim_rad},
+        "observable": ob.all_observable,
+        "degenerate": ob.rank < 12,
+        "std": ob.std,
         "null_space": N,
         "null_directions": tuple(names),
     }
 
 
 # ----------------------------------------------------------------------------- result
+
+
+def _finite_or_none(a: np.ndarray) -> list:
+    """Nested lists with inf (a degenerate direction's variance) as None (strict JSON)."""
+    return np.where(np.isfinite(a), a, None).tolist()
 
 
 @dataclass(frozen=True)
@@ -400,9 +410,9 @@ class HandEyeResult:
     no cov_B: isotropic translation/rotation variances estimated from the closed-form
     residuals, so chi2_dof is ~1 by construction). method: the method asked for;
     start_method: the closed form used (for "ml", the better of Shah and Li by the
-    weighted cost). observable / null_directions: see ``observability``; a direction
-    is unobservable when it is numerically null or its predicted 1-sigma exceeds
-    1 mm / 0.01 rad (see _OBS_LIMIT_MM, _OBS_LIMIT_RAD).
+    weighted cost). observable / null_directions: see ``handeye_observability``; a
+    direction is unobservable when the motion lacks it (degenerate; inf variance) or
+    its predicted 1-sigma exceeds obs_limits (default OBS_LIMITS: 1 mm / 0.01 rad).
     iterations: residual evaluations of the ML refinement (0 for closed forms).
     """
 
@@ -444,10 +454,10 @@ class HandEyeResult:
             "start_method": self.start_method,
             "X": self.X.tolist(),
             "Z": self.Z.tolist(),
-            "cov_X": self.cov_X.tolist(),
-            "cov_Z": self.cov_Z.tolist(),
-            "std_X": self.std_X.tolist(),
-            "std_Z": self.std_Z.tolist(),
+            "cov_X": _finite_or_none(self.cov_X),
+            "cov_Z": _finite_or_none(self.cov_Z),
+            "std_X": _finite_or_none(self.std_X),
+            "std_Z": _finite_or_none(self.std_Z),
             "perturbation": "right: T*P(xi), xi=(t_mm, rotvec_rad); X in {O} axes, Z in {S} axes",
             "chi2_dof": float(self.chi2_dof),
             "dof": int(self.dof),
@@ -524,8 +534,18 @@ def _refine(A, B, X0, Z0, Wh, max_nfev):
     return X0 @ pose_to_matrix(sol.x[:6]), Z0 @ pose_to_matrix(sol.x[6:]), sol
 
 
+def _unobservable_message(obs: dict) -> str:
+    t = obs["tolerance"]
+    if obs["degenerate"]:
+        return ("degenerate motion: unobservable " + "; ".join(obs["null_directions"])
+                + ". Add poses with rotations about at least two non-parallel axes")
+    return (f"weakly observable (predicted 1-sigma above {t['limit_mm']:g} mm / {t['limit_rad']:g} rad): "
+            + "; ".join(obs["null_directions"]) + ". Solved anyway; more poses, larger motions or less noise "
+            "would pin it down")
+
+
 def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degenerate: str = "raise",
-                  max_outer: int = 4, max_nfev: int = 2000) -> HandEyeResult:
+                  obs_limits=OBS_LIMITS, max_outer: int = 4, max_nfev: int = 2000) -> HandEyeResult:
     """Solve A_i X = Z B_i for X = ^E T_O and Z = ^W T_S.
 
     A: (n, 4, 4) flange poses ^W T_E (mm); B: (n, 4, 4) lens poses ^S T_O (mm); n >= 3.
@@ -536,8 +556,13 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     (robot.RobotNoise). cov_B: lens-pose covariance, one 6x6 or (n, 6, 6), in the
     right-perturbation convention (the pose estimator's covariance at x ~ 0; see
     ``pose_vector_cov_to_right``). With neither, the noise is estimated from the data.
-    on_degenerate: "raise" (CalibrationError naming the null directions) or "warn"
-    (return with observable=False, warnings set and a RuntimeWarning).
+    on_degenerate: what to do with degenerate motion (a direction the motion lacks,
+    see DEGENERATE_RTOL): "raise" (CalibrationError naming the null directions) or
+    "warn" (return with observable=False, inf 1-sigma on the parameters the null
+    directions move, warnings set and a RuntimeWarning). obs_limits: (mm, rad), the
+    predicted 1-sigma beyond which a direction counts as unobservable (default
+    OBS_LIMITS); such a merely noisy problem is always solved, with observable=False,
+    a warning in ``warnings`` and a RuntimeWarning.
     Raises CalibrationError for malformed input, fewer than 3 poses or (by default)
     degenerate motion.
     """
@@ -584,11 +609,10 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     _, start, X, Z = scored[0]
 
     warns = []
-    obs = observability(B, X, S=covs(X))
+    obs = handeye_observability(B, X, S=covs(X), obs_limits=obs_limits)
     if not obs["observable"]:
-        msg = ("degenerate motion: unobservable " + "; ".join(obs["null_directions"])
-               + ". Add poses with rotations about at least two non-parallel axes")
-        if on_degenerate == "raise":
+        msg = _unobservable_message(obs)
+        if obs["degenerate"] and on_degenerate == "raise":
             raise CalibrationError("A, B: " + msg)
         warns.append(msg)
         _warnings.warn(msg, RuntimeWarning, stacklevel=2)
@@ -615,16 +639,20 @@ def solve_handeye(A, B, method: str = "ml", sigma=None, cov_B=None, *, on_degene
     r = np.einsum("nij,nj->ni", Wh, e)
     chi2_i = np.sum(r * r, axis=1)
     dof = 6 * n - 12
-    obs = observability(B, X, S=S)
+    obs = handeye_observability(B, X, S=S, obs_limits=obs_limits)
     if not obs["observable"] and not warns:
-        msg = "degenerate motion: unobservable " + "; ".join(obs["null_directions"])
-        if on_degenerate == "raise":
+        msg = _unobservable_message(obs)
+        if obs["degenerate"] and on_degenerate == "raise":
             raise CalibrationError("A, B: " + msg)
         warns.append(msg)
     Jw = (Wh @ handeye_jacobian(B)).reshape(-1, 12)
     F = Jw.T @ Jw
-    cov = np.linalg.pinv(F, rcond=1e-14, hermitian=True) if not obs["observable"] else np.linalg.inv(F)
+    cov = np.linalg.pinv(F, rcond=1e-14, hermitian=True) if obs["degenerate"] else np.linalg.inv(F)
     cov = 0.5 * (cov + cov.T)
+    moved = ~np.isfinite(obs["std"])  # degenerate: inf 1-sigma, never a small finite number
+    cov[moved, :] = 0.0
+    cov[:, moved] = 0.0
+    cov[moved, moved] = np.inf
     return HandEyeResult(
         X=X, Z=Z, cov_X=cov[:6, :6].copy(), cov_Z=cov[6:, 6:].copy(), cov=cov,
         residuals=e, residual_chi2=chi2_i, chi2=float(chi2_i.sum()), dof=dof,

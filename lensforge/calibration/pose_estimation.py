@@ -1,16 +1,17 @@
-"""Lens pose estimation from one Shack-Hartmann measurement: invert z = h(x).
+"""Lens pose estimation from Shack-Hartmann measurements: invert z = h(x).
 
-Two estimators on the same forward model (``ForwardModel`` of the optics core):
+One estimator interface, ``estimate_pose`` / ``estimate_pose_model``, with the
+estimators in the registry ``ESTIMATORS`` (name -> function; add one there):
 
 ``lm`` (default): nonlinear least squares on the noise-whitened residual
-r(x) = L^-1 (h(x) - z), R = L L^T the Zernike noise covariance, solved with
-scipy.optimize.least_squares (trust-region reflective, Levenberg-Marquardt-like
-steps). The Jacobian comes from one batched trace of the 12 central-difference
-poses (or 6 forward ones), warm-started from the aimed rays at x. The reported
-covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
-noise levels of the bench the problem is locally linear, so this is the
-Cramer-Rao bound evaluated at the estimate, and chi2 = r^T r follows a chi-square
-law with m - 6 degrees of freedom.
+r(x) = L^-1 (h(x) - z), R = L L^T the Zernike noise covariance, solved by
+``estimate_poses_batch`` (Levenberg-Marquardt batched over P measurements; a single
+estimate is its P = 1 case). The Jacobian is ``optics.sensitivity.jacobian`` (one
+batched trace of the 12 central-difference poses, or 6 forward ones while far from
+the minimum), warm-started from the aimed rays. The reported covariance is the
+Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the noise levels of the bench
+the problem is locally linear, so this is the Cramer-Rao bound evaluated at the
+estimate, and chi2 = r^T r follows a chi-square law with m - 6 degrees of freedom.
 
 ``ukf``: the paper's baseline, an unscented Kalman filter on a static state (the
 pose), prior N(x0, P0) from the gripper/robot uncertainty model
@@ -25,15 +26,17 @@ normalised estimation error squared, NEES, ~ 6k instead of 6). The repeats do
 help the *mean* walk towards the least-squares solution (like an iterated
 filter); ``lm`` gets there directly and reports an honest covariance.
 
-Rank loss (e.g. a rotationally symmetric lens: rotation about the optical axis
-is unobservable). Choice made here: detected from the whitened, scaled Jacobian
-at the initial pose with the bench's ``rank_rtol`` (the same test as
-``metrics``). ``on_rank_loss="warn"`` (default) warns with
-:class:`UnobservableWarning`, estimates only the observable subspace (the
-unobservable directions stay at x0), names them in ``PoseEstimate.unobservable``
-(the DOF each null direction mostly moves) and puts ``inf`` on that DOF's
-covariance diagonal (zero off-diagonal);
-``on_rank_loss="raise"`` raises :class:`~lensforge.errors.RankError`.
+Observability (``optics.sensitivity.observability``, DESIGN.md's statistical rule,
+judged on the whitened, scaled Jacobian at the initial pose). A numerically null
+direction (e.g. rz of a rotationally symmetric lens) cannot be estimated:
+``on_rank_loss="warn"`` (default) warns with :class:`UnobservableWarning`,
+estimates only the other directions (the null ones stay at x0), names the DOF they
+move in ``PoseEstimate.unobservable`` and puts ``inf`` on those DOF's covariance
+diagonal (zero off-diagonal); ``on_rank_loss="raise"`` raises
+:class:`~lensforge.errors.RankError`. A DOF that is estimated but whose predicted
+1-sigma exceeds the bench's pose scale (e.g. rz of the paper's Zernike lens) is
+merely noisy: it is solved, flagged in ``PoseEstimate.observable`` and warned about
+(:class:`WeakObservabilityWarning`), never refused.
 
 Units: pose (tx, ty, tz) mm, (rx, ry, rz) rad (rotation vector, DESIGN.md);
 Zernike coefficients um.
@@ -45,21 +48,189 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..errors import ConfigError, PoseRangeError, PupilError, RankError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.pose import DOF_NAMES
+from ..optics.sensitivity import jacobian, observability
 from ..optics.shack_hartmann import ForwardModel, check_pose_range
+from .initial_poses import prior_covariance
 
-__all__ = ["PoseEstimate", "UnobservableWarning", "estimate_pose", "estimate_pose_model", "METHODS"]
-
-METHODS = ("lm", "ukf")
+__all__ = ["PoseEstimate", "BatchPoseEstimate", "UnobservableWarning", "WeakObservabilityWarning", "estimate_pose",
+           "estimate_pose_model", "estimate_poses_batch", "ESTIMATORS", "METHODS"]
 
 
 class UnobservableWarning(UserWarning):
     """Some pose direction is not observable from the measurement (rank loss)."""
+
+
+class WeakObservabilityWarning(UnobservableWarning):
+    """Some pose DOF is estimated but its predicted 1-sigma exceeds the bench's pose scale."""
+
+
+@dataclass(frozen=True)
+class BatchPoseEstimate:
+    """Pose estimates of P measurements.
+
+    poses: (P, 6) mm, rad; cov: (P, 6, 6) Gauss-Newton covariance (J^T R^-1 J)^-1 at
+    the estimate (inf on the diagonal of unobservable DOF); chi2: (P,) whitened
+    residual sum of squares; converged: (P,) met the tolerance with the pupil lit
+    and in the bench's range; iterations: LM iterations run; n_evals: poses traced;
+    out_of_range: (P,) stopped outside the bench's pose range; observable: (P, 6)
+    DESIGN.md's statistical rule at x0 (``optics.sensitivity.observability``).
+    """
+
+    poses: np.ndarray
+    cov: np.ndarray
+    chi2: np.ndarray
+    converged: np.ndarray
+    iterations: int
+    n_evals: int
+    out_of_range: np.ndarray = None
+    observable: np.ndarray = None
+
+
+def _whiten(Li, d):
+    """L^-1 d for d (..., m), given Li = L^-1 (m, m)."""
+    return d @ Li.T
+
+
+def _whiten_jac(Li, J):
+    """L^-1 J for Jacobians J (P, m, 6)."""
+    return _whiten(Li, J.transpose(0, 2, 1)).transpose(0, 2, 1)
+
+
+def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int = 40, xtol: float = 1e-10,
+                         ftol: float = 1e-10, fast_start: bool = True) -> BatchPoseEstimate:
+    """Whitened least-squares pose estimates for P measurements at once (LM, batched).
+
+    z_measured: (P, m) Zernikes (um); x0: (P, 6) initial poses (mm, rad). Same
+    objective for every pose; each pose has its own damping and
+    stops on its own (relative step < xtol in scaled units, or relative cost change
+    < ftol). Pose directions numerically null at x0 (``observability``, bench.rank_rtol)
+    stay at x0 with inf variance. fast_start: forward-difference
+    Jacobians until the cost stalls (same fixed point, fewer traces).
+    """
+    Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
+    x = np.array(np.atleast_2d(x0), dtype=float)
+    P = x.shape[0]
+    bench = model.bench
+    L = model.whitener
+    D = np.asarray(bench.pose_scales, dtype=float)
+    n_evals = 0
+
+    res = model.evaluate(x, check_range=False)
+    n_evals += P
+    uv, zc, valid = res.uv.copy(), res.z.copy(), res.valid.copy()
+    r = _whiten(L, zc - Z)
+    cost = np.where(valid, np.sum(r * r, axis=1), np.inf)
+    lam = np.full(P, 1e-10)  # Gauss-Newton first; damp only after a rejected step
+    active = valid.copy()
+    converged = np.zeros(P, bool)
+    J = np.zeros((P, Z.shape[1], 6))
+    need_J = valid.copy()
+    obs_mask = np.ones((P, 6), bool)  # not moved by a numerically null direction
+    observable = np.ones((P, 6), bool)  # the statistical rule
+    # Forward differences (half the traces) while far from the minimum; central ones
+    # once the cost stalls, and only central-Jacobian steps may end the iteration, so
+    # the fixed point J^T r = 0 is the central-difference one.
+    near = np.full(P, not fast_start)
+    J_central = np.zeros(P, bool)
+    lim = bench.pose_limits
+    first = True
+    it = 0
+    for it in range(1, max_iter + 1):
+        for cen in (True, False):
+            idx = np.flatnonzero(active & need_J & (near == cen))
+            if idx.size:
+                Jn = jacobian(model, x[idx], uv=uv[idx], z0=zc[idx], central=cen)[0]
+                J[idx] = _whiten_jac(L, Jn) * D  # scaled: d r / d u, u = x / D
+                J_central[idx] = cen
+                n_evals += (12 if cen else 6) * idx.size
+                need_J[idx] = False
+        if first:
+            # observability at x0 (the rule of optics.sensitivity): numerically null
+            # directions are pinned at x0; weak ones are estimated and flagged
+            for p in np.flatnonzero(valid):
+                ob = observability(J[p] / D, D, bench.rank_rtol)
+                obs_mask[p] = np.isfinite(ob.std)
+                observable[p] = ob.observable
+            first = False
+        a = np.flatnonzero(active)
+        if a.size == 0:
+            break
+        Ja, ra = J[a] * obs_mask[a][:, None, :], r[a]
+        A = np.einsum("pmi,pmj->pij", Ja, Ja)
+        g = np.einsum("pmi,pm->pi", Ja, ra)
+        dA = np.einsum("pii->pi", A)
+        # Marquardt damping on the diagonal; unobservable directions pinned (identity, zero gradient)
+        M = A + (lam[a, None] * np.where(dA > 0, dA, 1.0) + (~obs_mask[a]))[:, :, None] * np.eye(6)[None]
+        du = -np.linalg.solve(M, g[..., None])[..., 0]
+        xn = x[a] + du * D
+        rn_res = model.evaluate(xn, uv0=uv[a], check_range=False)
+        n_evals += a.size
+        rn = _whiten(L, rn_res.z - Z[a])
+        cn = np.where(rn_res.valid, np.sum(rn * rn, axis=1), np.inf)
+        acc = cn <= cost[a]
+        # predicted decrease of the linear model |r + J du|^2 - |r|^2
+        pred = -(2.0 * np.einsum("pi,pi->p", g, du) + np.einsum("pi,pij,pj->p", du, A, du))
+        u_norm = np.linalg.norm(x[a] / D, axis=1)
+        tiny = ((np.linalg.norm(du, axis=1) <= xtol * (xtol + u_norm))
+                | (pred <= ftol * np.maximum(cost[a], 1e-300)))
+        ai = a[acc]
+        small_step = tiny[acc]
+        small_cost = (cost[ai] - cn[acc]) <= ftol * cost[ai]
+        stalled = (cost[ai] - cn[acc]) <= 0.1 * cost[ai]
+        near[ai] |= stalled | small_step | small_cost
+        fin = J_central[ai]
+        small_step &= fin
+        small_cost &= fin
+        x[ai], r[ai], cost[ai], zc[ai] = xn[acc], rn[acc], cn[acc], rn_res.z[acc]
+        uv[ai] = rn_res.uv[acc]
+        lam[ai] = np.maximum(lam[ai] / 10.0, 1e-10)
+        need_J[ai] = True
+        rej = a[~acc]
+        # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly;
+        # a forward-difference J that fails to descend is replaced by the central one
+        fwd_rej = rej[~J_central[rej]]
+        near[fwd_rej] = True
+        need_J[fwd_rej] = True
+        rej = rej[J_central[rej]]
+        lam[rej] = np.maximum(lam[rej] * 10.0, 1e-4)
+        done = ai[small_step | small_cost]
+        converged[done] = True
+        active[done] = False
+        stuck = rej[tiny[np.isin(a, rej)] | (lam[rej] > 1e12)]
+        converged[stuck] = True  # no descent direction left: a (possibly flat) minimum
+        active[stuck] = False
+        # an estimate far outside the bench's pose range is abandoned (reported out of range)
+        far = ai[(np.abs(x[ai, :3]) > 2 * lim.translation_mm).any(axis=1)
+                 | (np.linalg.norm(x[ai, 3:], axis=1) > 2 * lim.rotation_rad)]
+        converged[far] = True
+        active[far] = False
+    # covariance from the Jacobian at the last linearisation point
+    cov = np.full((P, 6, 6), np.nan)
+    for p in np.flatnonzero(valid):
+        Jp = J[p][:, obs_mask[p]]
+        c = np.zeros((6, 6))
+        try:
+            sub = np.linalg.inv(Jp.T @ Jp)
+        except np.linalg.LinAlgError:
+            sub = np.linalg.pinv(Jp.T @ Jp)
+        c[np.ix_(obs_mask[p], obs_mask[p])] = sub
+        c *= np.outer(D, D)
+        for i in np.flatnonzero(~obs_mask[p]):
+            c[i, i] = np.inf
+        cov[p] = c
+    in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
+                & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
+    ok = converged & np.isfinite(cost) & in_range
+    return BatchPoseEstimate(poses=x, cov=cov, chi2=np.where(np.isfinite(cost), cost, np.inf), converged=ok,
+                             iterations=it, n_evals=n_evals, out_of_range=converged & np.isfinite(cost) & ~in_range,
+                             observable=observable)
+
+
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,7 +245,9 @@ class PoseEstimate:
     tolerances and the estimate is measurable and in range; n_evals: poses
     traced by the forward model (cost measure: ~0.3 ms each on one core);
     message: solver message or why it failed; method: "lm" or "ukf";
-    unobservable: names of unobservable DOF ("rz", ...); x0: the initial pose.
+    unobservable: names of the DOF a numerically null direction moves (not
+    estimated, left at x0); x0: the initial pose; observable: (6,) DESIGN.md's
+    statistical rule (False also where the predicted 1-sigma exceeds the pose scale).
     """
 
     pose: np.ndarray
@@ -88,6 +261,7 @@ class PoseEstimate:
     method: str = "lm"
     unobservable: tuple = ()
     x0: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    observable: np.ndarray = field(default_factory=lambda: np.ones(6, bool))
 
     @property
     def std(self) -> np.ndarray:
@@ -123,6 +297,7 @@ class PoseEstimate:
             "converged": bool(self.converged),
             "n_evals": int(self.n_evals),
             "unobservable": list(self.unobservable),
+            "observable": {n: bool(o) for n, o in zip(DOF_NAMES, self.observable)},
             "message": self.message,
         }
 
@@ -154,134 +329,39 @@ def _check_cov(name: str, c, n: int) -> np.ndarray:
     return a
 
 
-# --- the whitened problem ------------------------------------------------------------
+# --- estimators (the registry) -----------------------------------------------------------
 
 
-class _Whitened:
-    """Residuals and Jacobians of one measurement; counts traced poses; keeps
-    the last aimed rays as warm start. Internal, one per estimate."""
+@dataclass(frozen=True)
+class _Problem:
+    """One measurement and what every estimator needs at the initial pose."""
 
-    def __init__(self, model: ForwardModel, z: np.ndarray, jac: str):
-        self.model = model
-        self.z = z
-        self.Linv = model.whitener  # whitening: r = Linv d
-        self.h = np.asarray(model.bench.fd_steps, dtype=float)
-        self.jac_mode = jac
-        self.n_evals = 0
-        self._uv = None
-        self._cache = {}
-        self._jcache = {}
-
-    def whiten(self, d: np.ndarray) -> np.ndarray:
-        return d @ self.Linv.T
-
-    def evaluate(self, poses):
-        poses = np.atleast_2d(poses)
-        uv0 = None if self._uv is None else np.broadcast_to(self._uv, (len(poses),) + self._uv.shape)
-        res = self.model.evaluate(poses, uv0=uv0, check_range=False)
-        self.n_evals += len(poses)
-        return res
-
-    def base(self, x: np.ndarray):
-        """(z(x), valid) with caching of the last point."""
-        key = x.tobytes()
-        if key not in self._cache:
-            res = self.evaluate(x)
-            if res.valid[0]:
-                self._uv = res.uv[0].copy()
-            self._cache = {key: (res.z[0], bool(res.valid[0]), res)}
-        return self._cache[key]
-
-    def residual(self, x: np.ndarray) -> np.ndarray:
-        zx, ok, _ = self.base(x)
-        if not ok:
-            return np.full(self.z.shape, np.nan)
-        return self.whiten(zx - self.z)
-
-    def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """dz/dx (m, 6), whitened; one batched trace; one-sided where a side is unlit."""
-        key = x.tobytes()
-        if key in self._jcache:
-            return self._jcache[key]
-        z0, ok0, _ = self.base(x)
-        h = self.h
-        steps = np.diag(h)
-        if self.jac_mode == "forward":
-            res = self.evaluate(x + steps)
-            zp, vp = res.z, res.valid
-            J = np.where(vp[None, :], (zp - z0).T / h, 0.0)
-        else:
-            res = self.evaluate(np.concatenate([x + steps, x - steps]))
-            zp, zm, vp, vm = res.z[:6], res.z[6:], res.valid[:6], res.valid[6:]
-            central = (zp - zm).T / (2 * h)
-            fwd = (zp - z0).T / h
-            bwd = (z0 - zm).T / h
-            J = np.where(vp & vm, central, np.where(vp, fwd, np.where(vm, bwd, 0.0)))
-        Jw = self.whiten(J.T).T
-        self._jcache = {key: Jw}
-        return Jw
-
-
-def _rank_split(Jw: np.ndarray, bench: Bench):
-    """Observable basis (6, k) and null basis (6, 6-k) in scaled coordinates u = x / D."""
-    D = np.asarray(bench.pose_scales, dtype=float)
-    _, sv, Vt = np.linalg.svd(Jw * D, full_matrices=True)
-    tol = bench.rank_rtol * sv[0] if sv[0] > 0 else np.inf
-    k = int(np.sum(sv > tol))
-    return Vt[:k].T, Vt[k:].T, D
-
-
-def _null_names(null: np.ndarray) -> tuple:
-    return tuple(DOF_NAMES[int(np.argmax(np.abs(v)))] for v in null.T)
-
-
-def _expand_cov(cov_obs_u: np.ndarray, V: np.ndarray, null: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """Covariance in x of an estimate restricted to span(V) (scaled coords); inf on
-    the DOF the null space touches."""
-    cov = (V @ cov_obs_u @ V.T) * np.outer(D, D)
-    return _mark_unobservable(cov, null)
+    model: ForwardModel
+    z: np.ndarray
+    x0: np.ndarray
+    uv0: np.ndarray  # aimed rays at x0 (warm start)
+    basis: np.ndarray  # (6, k) estimated directions, scaled units u = x / D
+    null: np.ndarray  # (6,) bool: DOF moved by a numerically null direction
+    D: np.ndarray  # bench pose scales
 
 
 def _mark_unobservable(cov: np.ndarray, null: np.ndarray) -> np.ndarray:
-    """inf variance (zero covariances) on the DOF each null direction mostly moves."""
+    """inf variance (zero covariances) on the DOF a null direction moves."""
     cov = cov.copy()
-    for v in null.T:
-        i = int(np.argmax(np.abs(v)))
-        cov[i, :] = 0.0
-        cov[:, i] = 0.0
-        cov[i, i] = np.inf
+    cov[null, :] = 0.0
+    cov[:, null] = 0.0
+    cov[null, null] = np.inf
     return cov
 
 
-def _in_range(bench: Bench, x: np.ndarray) -> str:
-    try:
-        check_pose_range(bench, x)
-    except PoseRangeError as e:
-        return str(e)
-    return ""
-
-
-# --- estimators --------------------------------------------------------------------------
-
-
-def _lm(prob: _Whitened, x0: np.ndarray, V: np.ndarray, D: np.ndarray, max_iter: int, tol: float):
-    """least_squares over y, x = x0 + D * (V y)."""
-    k = V.shape[1]
-
-    def to_x(y):
-        return x0 + D * (V @ y)
-
-    def fun(y):
-        return prob.residual(to_x(y))
-
-    def jac(y):
-        return (prob.jacobian(to_x(y)) * D) @ V
-
-    sol = least_squares(fun, np.zeros(k), jac=jac, method="trf", xtol=tol, ftol=tol, gtol=tol,
-                        max_nfev=max_iter, x_scale=1.0)
-    x = to_x(sol.x)
-    Jy = sol.jac
-    return x, sol, Jy
+def _lm(prob: _Problem, *, jac: str = "central", max_iter: int = 50, tol: float = 1e-8, **_):
+    """Least squares: ``estimate_poses_batch`` on one measurement."""
+    b = estimate_poses_batch(prob.model, prob.z[None], prob.x0[None], max_iter=max_iter, xtol=tol, ftol=tol,
+                             fast_start=jac == "forward")
+    x, cov = b.poses[0], _mark_unobservable(b.cov[0], prob.null)
+    ok = bool(np.isfinite(b.chi2[0]) and (b.converged[0] or b.out_of_range[0]))
+    msg = "converged" if ok else f"not converged in {b.iterations} iterations"
+    return x, cov, ok, msg, b.iterations, b.n_evals
 
 
 def _merwe_weights(n: int, alpha: float, beta: float, kappa: float):
@@ -293,16 +373,30 @@ def _merwe_weights(n: int, alpha: float, beta: float, kappa: float):
     return wm, wc, n + lam
 
 
-def _ukf(prob: _Whitened, x0, P0, Q, R, repeats: int, alpha: float, beta: float, kappa: float, V, D):
-    """Static-state UKF in the observable subspace y (x = x0 + D V y); returns (x, P_x, msg)."""
+def _ukf(prob: _Problem, *, prior_cov=None, ukf_repeats: int = 12, ukf_alpha: float = 0.5, ukf_beta: float = 2.0,
+         ukf_kappa: float = 0.0, ukf_process_cov=None, **_):
+    """Static-state UKF in the estimated subspace y (x = x0 + D V y)."""
+    P0 = _check_cov("prior_cov", prior_covariance() if prior_cov is None else prior_cov, 6)
+    Q = np.zeros((6, 6)) if ukf_process_cov is None else np.asarray(ukf_process_cov, dtype=float)
+    if Q.shape != (6, 6) or not np.all(np.isfinite(Q)):
+        raise ConfigError("ukf_process_cov: expected a finite (6, 6) matrix")
+    if int(ukf_repeats) != ukf_repeats or ukf_repeats < 1:
+        raise ConfigError(f"ukf_repeats: expected an integer >= 1, got {ukf_repeats!r}")
+    if not ukf_alpha > 0:
+        raise ConfigError(f"ukf_alpha: must be > 0, got {ukf_alpha!r}")
+    repeats = int(ukf_repeats)
+    model, x0, V, D = prob.model, prob.x0, prob.basis, prob.D
     k = V.shape[1]
     T = D[:, None] * V  # x = x0 + T y
     Tp = np.linalg.pinv(T)
     y = np.zeros(k)
     Py = Tp @ P0 @ Tp.T
     Qy = Tp @ Q @ Tp.T
-    wm, wc, c = _merwe_weights(k, alpha, beta, kappa)
+    wm, wc, c = _merwe_weights(k, ukf_alpha, ukf_beta, ukf_kappa)
+    R = model.noise_cov
     msg = f"{repeats} update(s) on the same measurement"
+    n_evals = 0
+    uv0 = np.broadcast_to(prob.uv0, (2 * k + 1,) + prob.uv0.shape)
     for it in range(repeats):
         Py = Py + Qy
         scale = 1.0
@@ -313,12 +407,14 @@ def _ukf(prob: _Whitened, x0, P0, Q, R, repeats: int, alpha: float, beta: float,
                 S = np.linalg.cholesky(c * scale**2 * Py + 1e-18 * np.eye(k))
             Y = np.vstack([y, y + S.T, y - S.T])
             X = x0 + Y @ T.T
-            res = prob.evaluate(X)
+            res = model.evaluate(X, uv0=uv0, check_range=False)
+            n_evals += len(X)
             if res.valid.all():
                 break
             scale *= 0.5  # shrink the sigma-point spread until the pupil stays lit
         else:
-            raise PupilError(f"ukf: sigma points leave the lit pupil at update {it + 1}: {res.reason(int(np.argmin(res.valid)))}")
+            raise PupilError(f"ukf: sigma points leave the lit pupil at update {it + 1}: "
+                             f"{res.reason(int(np.argmin(res.valid)))}")
         if scale != 1.0:
             msg += f"; sigma spread shrunk x{scale:g} at update {it + 1}"
         Zs = res.z
@@ -332,18 +428,32 @@ def _ukf(prob: _Whitened, x0, P0, Q, R, repeats: int, alpha: float, beta: float,
         Py = Py - K @ Pzz @ K.T
         Py = 0.5 * (Py + Py.T)
     x = x0 + T @ y
-    return x, Py, msg
+    lit = bool(model.evaluate(x[None], uv0=prob.uv0[None], check_range=False).valid[0])
+    n_evals += 1
+    if not lit:
+        msg += "; the pupil is not lit at the estimate"
+    return x, _mark_unobservable(T @ Py @ T.T, prob.null), lit, msg, repeats, n_evals
 
 
-def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = "lm", *, prior_cov=None,
-                        ukf_repeats: int = 12, ukf_alpha: float = 0.5, ukf_beta: float = 2.0,
-                        ukf_kappa: float = 0.0, ukf_process_cov=None, jac: str = "central",
-                        max_iter: int = 50, tol: float = 1e-8, on_rank_loss: str = "warn") -> PoseEstimate:
+ESTIMATORS = {"lm": _lm, "ukf": _ukf}  # name -> estimator(problem, **options) -> (x, cov, ok, msg, iterations, n_evals)
+METHODS = tuple(ESTIMATORS)
+
+
+def _in_range(bench: Bench, x: np.ndarray) -> str:
+    try:
+        check_pose_range(bench, x)
+    except PoseRangeError as e:
+        return str(e)
+    return ""
+
+
+def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = "lm", *, on_rank_loss: str = "warn",
+                        jac: str = "central", **options) -> PoseEstimate:
     """:func:`estimate_pose` on a prepared ForwardModel (reuse it across many estimates)."""
     bench = model.bench
     m = len(model.modes)
-    if method not in METHODS:
-        raise ConfigError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if jac not in ("central", "forward"):
         raise ConfigError(f"jac: {jac!r} is not 'central' or 'forward'")
     if on_rank_loss not in ("warn", "raise"):
@@ -354,79 +464,59 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
                           f"um), got {np.shape(z_measured)}")
     x0 = np.zeros(6) if x0 is None else _check_vector("x0", x0, 6)
     check_pose_range(bench, x0)
-    if method == "ukf":
-        if prior_cov is None:
-            from .initial_poses import prior_covariance
-            prior_cov = prior_covariance()
-        P0 = _check_cov("prior_cov", prior_cov, 6)
-        Q = np.zeros((6, 6)) if ukf_process_cov is None else np.asarray(ukf_process_cov, dtype=float)
-        if Q.shape != (6, 6) or not np.all(np.isfinite(Q)):
-            raise ConfigError("ukf_process_cov: expected a finite (6, 6) matrix")
-        if int(ukf_repeats) != ukf_repeats or ukf_repeats < 1:
-            raise ConfigError(f"ukf_repeats: expected an integer >= 1, got {ukf_repeats!r}")
-        if not ukf_alpha > 0:
-            raise ConfigError(f"ukf_alpha: must be > 0, got {ukf_alpha!r}")
 
-    prob = _Whitened(model, z, jac)
-    _, ok, res0 = prob.base(x0)
-    if not ok:
-        raise PupilError(f"initial pose {np.round(x0, 4).tolist()}: {res0.reason(0)}; "
+    base = model.evaluate(x0[None], check_range=False)
+    if not base.valid[0]:
+        raise PupilError(f"initial pose {np.round(x0, 4).tolist()}: {base.reason(0)}; "
                          "start closer to the lens's true pose (the pupil must stay lit)")
-    J0 = prob.jacobian(x0)
-    V, null, D = _rank_split(J0, bench)
-    unobs = _null_names(null)
+    D = np.asarray(bench.pose_scales, dtype=float)
+    J0 = jacobian(model, x0[None], uv=base.uv, z0=base.z, central=jac == "central")[0][0]
+    Jw0 = model.whitener @ J0
+    ob = observability(Jw0, D, bench.rank_rtol)
+    null = ~np.isfinite(ob.std)
+    unobs = ob.null_names
     if unobs:
         msg = (f"pose direction(s) {', '.join(unobs)} unobservable from the measurement (Jacobian rank "
-               f"{V.shape[1]} < 6, e.g. a rotationally symmetric lens)")
+               f"{ob.rank} < 6, e.g. a rotationally symmetric lens)")
         if on_rank_loss == "raise":
             raise RankError(msg + "; break the lens's rotational symmetry (freeform terms)")
-        warnings.warn(msg + f"; estimating the other {V.shape[1]} DOF, the rest stay at x0", UnobservableWarning,
+        warnings.warn(msg + f"; estimating the other {ob.rank} DOF, the rest stay at x0", UnobservableWarning,
                       stacklevel=3)
-
-    if method == "lm":
-        x, sol, Jy = _lm(prob, x0, V, D, max_iter, tol)
-        try:
-            cov_y = np.linalg.inv(Jy.T @ Jy)
-        except np.linalg.LinAlgError:
-            cov_y = np.linalg.pinv(Jy.T @ Jy)
-        cov = _expand_cov(cov_y, V, null, D)
-        r = sol.fun
-        converged = bool(sol.success and sol.status > 0 and np.all(np.isfinite(r)))
-        message = sol.message
-        iterations = int(sol.njev)
-    else:
-        R = model.noise_cov
-        x, Py, message = _ukf(prob, x0, P0, Q, R, int(ukf_repeats), ukf_alpha, ukf_beta, ukf_kappa, V, D)
-        T = D[:, None] * V
-        cov = _mark_unobservable(T @ Py @ T.T, null)
-        r = prob.residual(x)
-        converged = bool(np.all(np.isfinite(r)))
-        if not converged:
-            message += "; the pupil is not lit at the estimate"
-        iterations = int(ukf_repeats)
+    weak = tuple(n for n, o, nl in zip(DOF_NAMES, ob.observable, null) if not o and not nl)
+    if weak:
+        warnings.warn(f"pose DOF {', '.join(weak)}: predicted 1-sigma exceeds the bench's pose scale "
+                      "(estimated, but barely measured)", WeakObservabilityWarning, stacklevel=3)
+    _, _, Vt = np.linalg.svd(Jw0 * D)
+    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], basis=Vt[:ob.rank].T, null=null, D=D)
+    x, cov, converged, message, iterations, n_evals = ESTIMATORS[method](prob, jac=jac, **options)
+    n_evals += 1 + (12 if jac == "central" else 6)
     out = _in_range(bench, x)
     if out:
         converged = False
         message = f"estimate left the bench's pose range: {out}"
+    res = model.evaluate(x[None], check_range=False)
+    r = model.whitener @ (res.z[0] - z) if res.valid[0] else np.full(m, np.inf)
     chi2 = float(r @ r) if np.all(np.isfinite(r)) else float("inf")
-    return PoseEstimate(pose=x, cov=cov, chi2=chi2, dof=m - V.shape[1], iterations=iterations, converged=converged,
-                        n_evals=prob.n_evals, message=message, method=method, unobservable=unobs, x0=x0)
+    return PoseEstimate(pose=x, cov=cov, chi2=chi2, dof=m - ob.rank, iterations=iterations, converged=bool(converged),
+                        n_evals=n_evals + 1, message=message, method=method, unobservable=unobs, x0=x0,
+                        observable=ob.observable)
 
 
 def estimate_pose(bench: Bench, lens: Lens, z_measured, x0=None, method: str = "lm", **options) -> PoseEstimate:
     """Estimate the lens pose (mm, rad; relative to nominal) from measured Zernikes (um).
 
-    method: "lm" (default; least squares on noise-whitened residuals, covariance
-    (J^T R^-1 J)^-1) or "ukf" (the paper's baseline; see the module docstring for
-    why ``ukf_repeats`` > 1 gives an overconfident covariance). x0: initial pose
-    (default nominal). Options: prior_cov (ukf prior, default from
-    ``initial_poses``), ukf_repeats (12, the paper's), ukf_alpha/beta/kappa
-    (0.5, 2, 0), ukf_process_cov (zero: static state), jac ("central" or
-    "forward"; forward halves the cost per iteration), max_iter (50 function evaluations), tol (1e-8),
-    on_rank_loss ("warn" or "raise").
+    method: a name in ``ESTIMATORS``: "lm" (default; least squares on noise-whitened
+    residuals, covariance (J^T R^-1 J)^-1) or "ukf" (the paper's baseline; see the
+    module docstring for why ``ukf_repeats`` > 1 gives an overconfident covariance).
+    x0: initial pose (default nominal). Options: jac ("central" or "forward": forward
+    differences while far from the minimum, half the traces per iteration),
+    on_rank_loss ("warn" or "raise"); lm: max_iter (50 iterations), tol (1e-8, relative
+    step and cost change); ukf: prior_cov (default from ``initial_poses``), ukf_repeats
+    (12, the paper's), ukf_alpha/beta/kappa (0.5, 2, 0), ukf_process_cov (zero: static
+    state).
     Raises ConfigError (bad inputs), PoseRangeError (x0 outside the bench's range),
     PupilError (pupil not lit at x0), RankError (rank loss with on_rank_loss="raise").
     For many estimates on one lens build the ForwardModel once and call
-    :func:`estimate_pose_model`.
+    :func:`estimate_pose_model`; for many measurements at once, :func:`estimate_poses_batch`.
     """
     return estimate_pose_model(ForwardModel(bench, lens), z_measured, x0, method, **options)

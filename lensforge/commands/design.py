@@ -10,7 +10,6 @@ import typer
 from rich.console import Console
 
 from ..errors import ConfigError
-from ..optics.lens import PAPER_LENSES, paper_lens
 from ._common import emit_json, info, load_bench_arg
 
 
@@ -27,7 +26,7 @@ def _weights(text: str) -> tuple[float, float]:
 
 def design(
     model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
-    method: str = typer.Option("cmaes", "--method", help="cmaes (CMA-ES) | nelder-mead | pso | ga"),
+    method: str = typer.Option("cmaes", "--method", help="optimiser: cmaes (CMA-ES, default) | nelder-mead | pso | ga (the registry in design/optimize.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
     criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min)"),
     weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
@@ -42,6 +41,9 @@ def design(
     range_mm: float = typer.Option(1.0, "--range-mm", help="working range, translation half-width (mm)"),
     range_deg: float = typer.Option(1.0, "--range-deg", help="working range, rotation half-width (deg)"),
     max_slope: float = typer.Option(50.0, "--max-slope", help="steepest surface slope in the clear aperture (deg; 90 = off)"),
+    require_observable: bool = typer.Option(False, "--require-observable",
+                                            help="constraint: every pose DOF observable (predicted 1-sigma within "
+                                                 "the bench's pose scale, DESIGN.md)"),
     time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in)"),
     robust: Optional[Path] = typer.Option(None, "--robust", help="tolerance TOML: minimise the expected criterion over as-built draws (tolerance-robust design)"),
@@ -67,7 +69,7 @@ def design(
         spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
                           statistic=robust_statistic)
     cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
-                       range_rad=math.radians(range_deg), max_slope_deg=max_slope)
+                       range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable)
     d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
                         free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
                         n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
@@ -97,14 +99,14 @@ def plot(
 ):
     """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
     from ..design.design_file import load_design
+    from ..optics.lens import resolve_lens
     from ..plots import design_plots
 
-    key = design_file.split(":", 1)[-1].lower().replace("-", "_")
-    if key in PAPER_LENSES:
-        paths = design_plots(paper_lens(key), out, stem=f"paper_{key}")
+    r = resolve_lens(design_file)
+    if "model" in r.data:  # a design file: its plots show the design's parameters too
+        paths = design_plots(load_design(design_file), out, stem=Path(design_file).stem)
     else:
-        d = load_design(design_file)
-        paths = design_plots(d, out, stem=Path(design_file).stem)
+        paths = design_plots(r.lens, out, stem=r.label.replace(" ", "_"))
     if json_out:
         emit_json({"schema_version": 1, "files": [str(p) for p in paths]})
     else:

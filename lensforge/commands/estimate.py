@@ -12,7 +12,7 @@ import typer
 from ..errors import ConfigError
 from ..fileio import write_atomic
 from ..progress import progress_bar
-from ._common import emit_json, info, lens_labels, load_bench_arg, load_lens_arg
+from ._common import emit_json, info, load_bench_arg
 
 
 def estimate_study(
@@ -28,22 +28,24 @@ def estimate_study(
 ):
     """Estimate each lens's pose from noisy measurements TRIALS times; report error
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
+    from ..calibration.pose_estimation import ESTIMATORS
+    from ..optics.lens import resolve_lens
     from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
 
     # ConfigError, not typer.Exit: under main()'s standalone_mode=False a typer.Exit
     # comes back as a return value and the exit status is lost
-    if method not in ("lm", "ukf"):
-        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if trials < 1 or ukf_repeats < 1:
         raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
-    loaded = [load_lens_arg(arg) for arg in lenses]  # every argument checked before the long work
+    loaded = [resolve_lens(arg) for arg in lenses]  # every argument checked before the long work
     results = []
     with progress_bar(trials * len(lenses), "estimates", not (no_progress or json_out)) as bar:
-        for name, (lens, data) in zip(lens_labels(lenses), loaded):
-            bar.describe(f"{name}: {method} estimates")
-            results.append(study_lens(load_bench_arg(bench, data), lens, name, trials, method, seed, tick=bar.advance,
-                                      **opts))
+        for r in loaded:
+            bar.describe(f"{r.label}: {method} estimates")
+            results.append(study_lens(load_bench_arg(bench, r), r.lens, r.label, trials, method, seed,
+                                      tick=bar.advance, **opts))
     meta = {"method": method, "trials": trials, "seed": seed,
             **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
     paths = save_study(results, out, **meta)
@@ -57,7 +59,7 @@ def scenario(
     lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
     design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
     runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: lm or ukf"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: lm | ukf (the registry ESTIMATORS in calibration/pose_estimation.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
@@ -67,16 +69,19 @@ def scenario(
     """The paper's calibration procedure in simulation: 12 convergence poses, 12
     calibration poses, lens poses estimated from noisy measurements, hand-eye
     solved with the estimator covariances; Z error vs its predicted bound."""
+    from ..calibration.pose_estimation import ESTIMATORS
+    from ..optics.lens import resolve_lens
     from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
 
     if design not in ("random", "oed", "both"):
         raise ConfigError(f"--poses: {design!r} is not random, oed or both")
-    if method not in ("lm", "ukf"):
-        raise ConfigError(f"--method: {method!r} is not lm or ukf")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if runs < 1:
         raise ConfigError(f"--runs: must be >= 1, got {runs}")
-    lens_obj, data = load_lens_arg(lens)
-    b = load_bench_arg(bench, data)
+    r = resolve_lens(lens)
+    lens_obj = r.lens
+    b = load_bench_arg(bench, r)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)
     with progress_bar(runs * len(designs), f"calibrations ({', '.join(designs)} poses)",

@@ -9,29 +9,27 @@ from rich.console import Console
 from rich.table import Table
 
 from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns
-from ._common import emit_json, lens_labels, load_bench_arg, load_lens_arg
+from ._common import emit_json, load_bench_arg
 
 
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
     """Metrics rows (JSON-ready) for each lens argument (paper name or design file)."""
-    from ..optics.pose import DOF_NAMES
+    from ..optics.lens import resolve_lens
     from ..optics.sensitivity import metrics
 
     rows = []
-    for name, label in zip(names, lens_labels(names)):
-        lens, data = load_lens_arg(name)
-        bench = load_bench_arg(bench_path, data)
+    for name in names:
+        r = resolve_lens(name)
+        lens = r.lens
+        bench = load_bench_arg(bench_path, r)
         m = metrics(bench, lens)
-        row = {"lens": name, "label": label, "description": lens.name, **m.to_dict()}
-        # DESIGN.md's statistical rule: 1-sigma bound above the pose scale (or infinite)
-        row.setdefault("unobservable", [d for d, s, sc in zip(DOF_NAMES, m.crlb_std, bench.pose_scales)
-                                        if not s <= sc])
-        rows.append(row)
+        rows.append({"lens": name, "label": r.label, "description": lens.name, **m.to_dict()})
     return rows
 
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
-    """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF)."""
+    """A rich table of metrics rows (rank, kappa, sigma_min, J, CRLB std per DOF, the
+    DOF unobservable by DESIGN.md's statistical rule)."""
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 

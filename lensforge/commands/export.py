@@ -9,7 +9,8 @@ import typer
 
 from ..errors import ConfigError
 from ..manufacturing.features import FeatureSpec
-from ._common import emit_json, info, load_lens_arg
+from ..optics.lens import resolve_lens
+from ._common import emit_json, info
 
 
 def export_cmd(
@@ -36,7 +37,7 @@ def export_cmd(
         raise ConfigError(f"--chord-tol: must be a positive number of mm, got {chord_tol}")
     if fiducial_kind not in ("flat", "notch"):
         raise ConfigError(f"--fiducial-kind: must be 'flat' or 'notch', got {fiducial_kind!r}")
-    lens, _ = load_lens_arg(design)
+    lens = resolve_lens(design).lens
     if edge_diameter is not None:
         if not math.isfinite(edge_diameter) or edge_diameter < lens.aperture:
             raise ConfigError(f"--edge-diameter: must be >= the clear aperture {lens.aperture} mm, "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
@@ -79,15 +80,25 @@ def handeye_cmd(
     allow_degenerate: bool = typer.Option(
         False, "--allow-degenerate",
         help="report degenerate motion as observable=false instead of failing"),
+    obs_limit_mm: Optional[float] = typer.Option(None, "--obs-limit-mm",
+                                                 help="predicted 1-sigma (mm) beyond which a direction is reported "
+                                                      "unobservable (solved and warned, never refused); default "
+                                                      "calibration.handeye.OBS_LIMITS (1 mm)"),
+    obs_limit_rad: Optional[float] = typer.Option(None, "--obs-limit-rad",
+                                                  help="the same for rotations (rad); default OBS_LIMITS (0.01 rad)"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
-    from ..calibration.handeye import solve_handeye
+    from ..calibration.handeye import OBS_LIMITS, solve_handeye  # imported here: `lensforge --help` stays fast
+
+    obs_limit_mm = OBS_LIMITS[0] if obs_limit_mm is None else obs_limit_mm
+    obs_limit_rad = OBS_LIMITS[1] if obs_limit_rad is None else obs_limit_rad
 
     kw = load_poses(poses)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res = solve_handeye(kw["A"], kw["B"], method=method, sigma=kw["sigma"], cov_B=kw["cov_B"],
-                            on_degenerate="warn" if allow_degenerate else "raise")
+                            on_degenerate="warn" if allow_degenerate else "raise",
+                            obs_limits=(obs_limit_mm, obs_limit_rad))
     sz = res.std_Z
     info(f"hand-eye ({res.method}, {res.residuals.shape[0]} poses, noise model {res.noise_model}): "
          f"chi2/dof = {res.chi2_dof:.3g}")

@@ -16,7 +16,7 @@ import numpy as np
 from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns, fmt_bound
 from ..errors import ConfigError, LensforgeError
 from ..optics.bench import Bench
-from ..optics.lens import PAPER_LENSES, Lens, paper_lens
+from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
 from .constraints import Constraints, check_design
@@ -42,15 +42,11 @@ def resolve_entry(arg) -> CompareEntry:
         return CompareEntry(f"{arg.model} {arg.method} seed {arg.seed}", arg.lens, arg)
     if isinstance(arg, Lens):
         return CompareEntry(arg.name or "lens", arg)
-    s = str(arg)
-    key = s.split(":", 1)[1] if s.lower().startswith("paper:") else s
-    key = key.lower().replace("-", "_")
-    if key in PAPER_LENSES:
-        return CompareEntry(f"paper {key}", paper_lens(key))
-    if s.lower().startswith("paper:"):
-        raise ConfigError(f"compare: unknown paper lens {s!r}; use paper:{{{','.join(sorted(PAPER_LENSES))}}}")
-    d = load_design(s)
-    return CompareEntry(f"{d.model} {d.method} seed {d.seed}", d.lens, d)
+    r = resolve_lens(arg)
+    if "model" in r.data:  # a design file: keep its history and settings
+        d = load_design(arg)
+        return CompareEntry(f"{d.model} {d.method} seed {d.seed}", d.lens, d)
+    return CompareEntry(r.label, r.lens)
 
 
 def compare_rows(entries, bench: Bench | None = None, constraints: Constraints | None = None) -> list[dict]:
@@ -65,8 +61,7 @@ def compare_rows(entries, bench: Bench | None = None, constraints: Constraints |
             md = metrics_dict(m)
             row.update({k: md[k] for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
             row["crlb_std"] = md["crlb_std"]
-            # DESIGN.md's statistical rule: 1-sigma bound above the pose scale (or infinite)
-            row["unobservable"] = [d for d, s, sc in zip(DOF_NAMES, m.crlb_std, bench.pose_scales) if not s <= sc]
+            row["unobservable"] = md.get("unobservable", [])  # DESIGN.md's statistical rule (Metrics.observability)
             row["error"] = None
         except LensforgeError as err:
             row.update({k: None for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})

@@ -24,6 +24,8 @@ import contextlib
 import sys
 import time
 from collections import Counter
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -37,12 +39,9 @@ from .design_file import Design, metrics_dict
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
 
-__all__ = ["METHODS", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE", "RobustSpec"]
+__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
+           "RobustSpec"]
 
-METHODS = ("nelder-mead", "pso", "ga", "cmaes")
-_ALIASES = {"nm": "nelder-mead", "nelder_mead": "nelder-mead", "neldermead": "nelder-mead", "simplex": "nelder-mead",
-            "cma": "cmaes", "cma-es": "cmaes", "cma_es": "cmaes", "genetic": "ga", "swarm": "pso"}
-DEFAULT_MAX_EVALS = {"nelder-mead": 1000, "pso": 3000, "ga": 3000, "cmaes": 800}  # ~30 ms per evaluation
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
 _N_CANDIDATES = 10
@@ -52,12 +51,6 @@ class _Stop(Exception):
     """Budget (evaluations or wall time) exhausted."""
 
 
-def check_method(method: str) -> str:
-    key = str(method).strip().lower()
-    key = _ALIASES.get(key, key)
-    if key not in METHODS:
-        raise ConfigError(f"method: unknown optimiser {method!r}; use one of {', '.join(METHODS)}")
-    return key
 
 
 @contextlib.contextmanager
@@ -242,7 +235,7 @@ def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
     return par.to_unit(p), "given"
 
 
-# --- the four optimisers -------------------------------------------------------
+# --- the optimisers (registered in OPTIMISERS below) -------------------------------------------------------
 
 def _initial_population(rng, u0, k: int, spread: float = 0.1) -> np.ndarray:
     """k points of the unit box: the feasible start, half of the rest scattered around it
@@ -255,7 +248,8 @@ def _initial_population(rng, u0, k: int, spread: float = 0.1) -> np.ndarray:
     return X
 
 
-def _run_nelder_mead(prob: DesignProblem, starts: list, opts: dict) -> dict:
+def _run_nelder_mead(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
+    starts = [u0] + [prob.random_feasible_start(rng) for _ in range(int(opts.get("n_starts", 1)) - 1)]
     from scipy.optimize import minimize
 
     n = prob.par.n
@@ -290,7 +284,7 @@ def _time_up(prob: DesignProblem) -> bool:
     return prob.time_limit_s is not None and time.perf_counter() - prob.t0 > prob.time_limit_s
 
 
-def _run_pso(prob: DesignProblem, u0, rng, opts: dict) -> dict:
+def _run_pso(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
     from pyswarms.single import GlobalBestPSO
 
     n = prob.par.n
@@ -317,7 +311,7 @@ def _run_ga(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
     from pymoo.optimize import minimize
 
     n = prob.par.n
-    pop = int(opts.get("population", 30))
+    pop = int(opts.get("population") or 30)
     X0 = _initial_population(rng, u0, pop)
 
     class _P(Problem):
@@ -336,7 +330,7 @@ def _run_ga(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
     return {"population": pop, "generations": gens}
 
 
-def _run_cmaes(prob: DesignProblem, u0, seed: int, opts: dict) -> dict:
+def _run_cmaes(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
     import cma
 
     sigma0 = float(opts.get("sigma0", 0.1))
@@ -361,6 +355,39 @@ def _plain_stop(v):
         return float(v)
     except (TypeError, ValueError):
         return str(v)
+
+
+@dataclass(frozen=True)
+class Optimiser:
+    """One optimiser of the unit box: run(problem, u0, rng, seed, opts) -> settings dict
+    (it calls problem(u) / problem.batch(U) until the budget raises _Stop);
+    default_max_evals: budget when none is given; aliases: other accepted names."""
+
+    name: str
+    run: Callable[..., dict]
+    default_max_evals: int
+    aliases: tuple = ()
+
+
+# The registry: adding an optimiser is one _run_* function and one entry here.
+OPTIMISERS = {o.name: o for o in (
+    Optimiser("nelder-mead", _run_nelder_mead, 1000, ("nm", "nelder_mead", "neldermead", "simplex")),
+    Optimiser("pso", _run_pso, 3000, ("swarm",)),
+    Optimiser("ga", _run_ga, 3000, ("genetic",)),
+    # 800: the default design (zernike, criterion A, free set 'full', seed 0) is within its CRLB goals
+    Optimiser("cmaes", _run_cmaes, 800, ("cma", "cma-es", "cma_es")),
+)}
+METHODS = tuple(OPTIMISERS)
+DEFAULT_MAX_EVALS = {name: o.default_max_evals for name, o in OPTIMISERS.items()}  # ~30 ms per evaluation
+_ALIASES = {a: o.name for o in OPTIMISERS.values() for a in o.aliases}
+
+
+def check_method(method: str) -> str:
+    key = str(method).strip().lower()
+    key = _ALIASES.get(key, key)
+    if key not in OPTIMISERS:
+        raise ConfigError(f"method: unknown optimiser {method!r}; use one of {', '.join(METHODS)}")
+    return key
 
 
 # --- public entry point ----------------------------------------------------------
@@ -419,20 +446,11 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
         u0, start_kind = _start_point(prob, start, rng)
         p_start = par.from_unit(u0)
         start_cost = prob(u0)  # counted, so the start is always a candidate
-        opts = {"particles": particles, "population": population, "sigma0": sigma0}
+        opts = {"particles": particles, "population": population, "sigma0": sigma0, "n_starts": int(n_starts)}
         if ftol is not None:
             opts["ftol"] = ftol
         with contextlib.redirect_stdout(sys.stderr), _global_numpy_seed(seed):
-            if meth == "nelder-mead":
-                starts = [u0] + [prob.random_feasible_start(rng) for _ in range(int(n_starts) - 1)]
-                info = _run_nelder_mead(prob, starts, opts)
-            elif meth == "pso":
-                info = _run_pso(prob, u0, rng, opts)
-            elif meth == "ga":
-                opts["population"] = population or 30
-                info = _run_ga(prob, u0, rng, seed, opts)
-            else:
-                info = _run_cmaes(prob, u0, seed, opts)
+            info = OPTIMISERS[meth].run(prob, u0, rng, seed, opts)
         prob.record(final=True)
     wall = time.perf_counter() - t0
     if prob.best_u is None or prob.best_cost >= INFEASIBLE:

@@ -24,8 +24,9 @@ larger set of draws and reports the criterion's mean / p95 and the CRLB std per 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -53,13 +54,16 @@ class RobustSpec:
     converted); n_samples: as-built draws per candidate (small: 4-16); seed: the
     SeedSequence whose children seed the draws (common random numbers, independent
     of the optimiser's seed); statistic: 'mean' (expected criterion), 'max' (worst
-    draw) or 'mean+std'.
+    draw) or 'mean+std'; sampler: the as-built sampler, sampler(lens, tolerances, rng,
+    validate=False) -> Lens (default ``manufacturing.sample_as_built``; pass another
+    to use a different manufacturing model).
     """
 
     tolerances: Tolerances
     n_samples: int = 8
     seed: int = 0
     statistic: str = "mean"
+    sampler: Callable | None = field(default=None, compare=False)
 
     def __post_init__(self):
         tol = self.tolerances
@@ -160,7 +164,7 @@ def as_built_draws(lens: Lens, spec: RobustSpec) -> list:
     out = []
     for rng in spec.rngs():
         try:
-            out.append(cheap_check(sample_as_built(lens, spec.tolerances, rng, validate=False)))
+            out.append(cheap_check((spec.sampler or sample_as_built)(lens, spec.tolerances, rng, validate=False)))
         except LensforgeError:
             out.append(None)
     return out

@@ -27,8 +27,9 @@ draws of the full model (common random numbers for variance budgets).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy.special import gammaincinv
@@ -41,38 +42,75 @@ from ..optics.surfaces import CanonicalSurface, Freeform
 from ..optics.zernike import zernike_monomials
 
 __all__ = ["Tolerances", "load_tolerances", "save_tolerances", "sample_as_built", "scale_canonical",
-           "COMPONENTS", "DEFAULT_TOLERANCES_FILE"]
+           "COMPONENTS", "COMPONENT_SPECS", "ToleranceComponent", "DEFAULT_TOLERANCES_FILE"]
 
-COMPONENTS = ("polishing", "form", "thickness", "index", "shrinkage", "ripple")
 DEFAULT_TOLERANCES_FILE = Path(__file__).with_name("tolerances-default.toml")
 SCHEMA_VERSION = 1
 MATERIAL = "material"  # TOML value meaning "take it from the lens material"
 
-# TOML table -> {TOML key: dataclass field}
-_TABLES = {
-    "polishing": {"depth_mm": "polish_depth_mm", "depth_sigma_mm": "polish_depth_sigma_mm",
-                  "rolloff_mm": "polish_rolloff_mm", "rolloff_sigma_mm": "polish_rolloff_sigma_mm",
-                  "rolloff_power": "polish_rolloff_power", "surfaces": "polished_surfaces"},
-    "form": {"rms_mm": "form_rms_mm", "modes": "form_modes"},
-    "thickness": {"mean_mm": "thickness_mean_mm", "sigma_mm": "thickness_sigma_mm"},
-    "index": {"mean": "index_mean", "sigma": "index_sigma", "batch_sigma": "index_batch_sigma",
-              "factor": "index_factor"},
-    "shrinkage": {"mean": "shrinkage_mean", "sigma": "shrinkage_sigma", "factor": "shrinkage_factor"},
-    "ripple": {"amplitude_mm": "ripple_amplitude_mm", "period_mm": "ripple_period_mm"},
-}
+
+@dataclass(frozen=True)
+class ToleranceComponent:
+    """One tolerance component, everything about it in one place.
+
+    table: its TOML table, {TOML key: Tolerances field}; non_negative: fields that
+    must be >= 0 (validation); scaled: the magnitudes its budget scale factor
+    multiplies (shape parameters are left alone); main: (field, unit) naming its size
+    in the budget table (after ``Tolerances.resolved``); draw(rng, tolerances): the
+    standard random numbers one as-built lens takes from it (a fixed count whatever
+    the values, for common random numbers); draw_rank: its place in the draw order
+    (fixed: changing it changes every seeded study).
+    """
+
+    name: str
+    table: dict
+    scaled: tuple
+    main: tuple
+    non_negative: tuple = ()
+    draw: Callable = field(default=lambda rng, t: np.empty(0), compare=False)
+    draw_rank: int = 99
+
+
+# The registry, in the order of the TOML file. A new component: its Tolerances fields,
+# one entry here, and its effect in sample_as_built.
+COMPONENT_SPECS = {c.name: c for c in (
+    ToleranceComponent(
+        "polishing",
+        {"depth_mm": "polish_depth_mm", "depth_sigma_mm": "polish_depth_sigma_mm", "rolloff_mm": "polish_rolloff_mm",
+         "rolloff_sigma_mm": "polish_rolloff_sigma_mm", "rolloff_power": "polish_rolloff_power",
+         "surfaces": "polished_surfaces"},
+        scaled=("polish_depth_mm", "polish_depth_sigma_mm", "polish_rolloff_mm", "polish_rolloff_sigma_mm"),
+        main=("polish_depth_mm", "mm"),
+        non_negative=("polish_depth_mm", "polish_depth_sigma_mm", "polish_rolloff_mm", "polish_rolloff_sigma_mm"),
+        draw=lambda rng, t: rng.uniform(size=(2, 2)), draw_rank=1),  # (surface, depth/rolloff)
+    ToleranceComponent(
+        "form", {"rms_mm": "form_rms_mm", "modes": "form_modes"}, scaled=("form_rms_mm",),
+        main=("form_rms_mm", "mm RMS"), non_negative=("form_rms_mm",),
+        draw=lambda rng, t: rng.standard_normal((2, len(t.form_modes))), draw_rank=0),
+    ToleranceComponent(
+        "thickness", {"mean_mm": "thickness_mean_mm", "sigma_mm": "thickness_sigma_mm"},
+        scaled=("thickness_mean_mm", "thickness_sigma_mm"), main=("thickness_sigma_mm", "mm (1 sigma)"),
+        non_negative=("thickness_sigma_mm",), draw=lambda rng, t: rng.standard_normal(1), draw_rank=2),
+    ToleranceComponent(
+        "index", {"mean": "index_mean", "sigma": "index_sigma", "batch_sigma": "index_batch_sigma",
+                  "factor": "index_factor"},
+        scaled=("index_mean", "index_sigma", "index_batch_sigma"), main=("index_sigma", "(1 sigma)"),
+        non_negative=("index_sigma", "index_batch_sigma", "index_factor"),
+        draw=lambda rng, t: rng.standard_normal(2), draw_rank=3),  # (absolute, batch)
+    ToleranceComponent(
+        "shrinkage", {"mean": "shrinkage_mean", "sigma": "shrinkage_sigma", "factor": "shrinkage_factor"},
+        scaled=("shrinkage_mean", "shrinkage_sigma"), main=("shrinkage_sigma", "(1 sigma, linear)"),
+        non_negative=("shrinkage_sigma", "shrinkage_factor"),
+        draw=lambda rng, t: rng.standard_normal(1), draw_rank=4),
+    ToleranceComponent(
+        "ripple", {"amplitude_mm": "ripple_amplitude_mm", "period_mm": "ripple_period_mm"},
+        scaled=("ripple_amplitude_mm",), main=("ripple_amplitude_mm", "mm"), non_negative=("ripple_amplitude_mm",)),
+)}
+COMPONENTS = tuple(COMPONENT_SPECS)
+_TABLES = {n: c.table for n, c in COMPONENT_SPECS.items()}  # TOML table -> {TOML key: dataclass field}
 _TOML_NAME = {f: f"{t}.{k}" for t, m in _TABLES.items() for k, f in m.items()}
-# magnitudes a component's scale factor multiplies (shape parameters are left alone)
-_SCALED = {
-    "polishing": ("polish_depth_mm", "polish_depth_sigma_mm", "polish_rolloff_mm", "polish_rolloff_sigma_mm"),
-    "form": ("form_rms_mm",),
-    "thickness": ("thickness_mean_mm", "thickness_sigma_mm"),
-    "index": ("index_mean", "index_sigma", "index_batch_sigma"),
-    "shrinkage": ("shrinkage_mean", "shrinkage_sigma"),
-    "ripple": ("ripple_amplitude_mm",),
-}
-_NON_NEGATIVE = ("polish_depth_mm", "polish_depth_sigma_mm", "polish_rolloff_mm", "polish_rolloff_sigma_mm",
-                 "form_rms_mm", "thickness_sigma_mm", "index_sigma", "index_batch_sigma", "shrinkage_sigma",
-                 "ripple_amplitude_mm", "index_factor", "shrinkage_factor")
+_SCALED = {n: c.scaled for n, c in COMPONENT_SPECS.items()}
+_NON_NEGATIVE = tuple(f for c in COMPONENT_SPECS.values() for f in c.non_negative)
 _MAX_MODE = 66  # Noll modes up to radial order 10
 
 
@@ -340,9 +378,9 @@ def sample_as_built(lens: Lens, tolerances: Tolerances, rng: np.random.Generator
     t = tolerances.resolved(lens.material_data)
     nm = len(t.form_modes)
     # fixed draw order and count, whatever the values
-    z_form = rng.standard_normal((2, nm))
-    u_polish = rng.uniform(size=(2, 2))  # (surface, depth/rolloff)
-    z_thick, z_index, z_batch, z_shrink = rng.standard_normal(4)
+    d = {c.name: c.draw(rng, t) for c in sorted(COMPONENT_SPECS.values(), key=lambda c: c.draw_rank)}
+    z_form, u_polish = d["form"], d["polishing"]
+    (z_thick,), (z_index, z_batch), (z_shrink,) = d["thickness"], d["index"], d["shrinkage"]
 
     s = 1.0 - (t.shrinkage_mean + t.shrinkage_sigma * z_shrink)
     if s <= 0:

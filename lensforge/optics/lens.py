@@ -7,7 +7,7 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -15,10 +15,11 @@ import numpy as np
 
 from ..errors import ConfigError, LensGeometryError
 from ..fileio import read_json
+from .bench import Bench
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
 
-__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens"]
+__all__ = ["Lens", "paper_lens", "PAPER_LENSES", "load_lens", "resolve_lens", "ResolvedLens"]
 
 
 def polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
@@ -223,18 +224,65 @@ def paper_lens(name: str) -> Lens:
     return Lens(**PAPER_LENSES[key]).validate()
 
 
-def load_lens(source) -> tuple[Lens, dict]:
-    """A lens from a paper lens name, a design JSON file (lens under key "lens") or a
-    lens JSON file (``Lens.to_dict()``). Returns (validated lens, parsed JSON or {})."""
-    key = str(source).lower().replace("-", "_")
-    if isinstance(source, str) and key in PAPER_LENSES:
-        return paper_lens(key), {}
-    p = Path(source)
+@dataclass(frozen=True)
+class ResolvedLens:
+    """A lens named by the user: lens (validated), label (for tables), bench (the
+    design's bench when the source stores one, else None), data (the parsed JSON,
+    {} otherwise), source (the object passed in, e.g. a Design)."""
+
+    lens: Lens
+    label: str
+    bench: Bench | None = None
+    data: dict = field(default_factory=dict)
+    source: object = None
+
+    def bench_or(self, override: Bench | None = None) -> Bench:
+        """``override`` if given, else the design's bench, else the built-in default."""
+        return override or self.bench or Bench.default()
+
+
+def resolve_lens(spec) -> ResolvedLens:
+    """The one lens resolver of every command and study: a paper lens name
+    (spherical, polynomial, extended_polynomial, zernike; '-' for '_' accepted),
+    'paper:NAME', a design JSON file (lens under key "lens", bench under "bench"), a
+    lens JSON file (``Lens.to_dict()``), a Lens, or an object with ``.lens`` (and
+    optionally ``.bench``, e.g. a Design). Raises ConfigError naming the fix."""
+    if isinstance(spec, ResolvedLens):
+        return spec
+    if isinstance(spec, Lens):
+        return ResolvedLens(spec.validate(), spec.name or "lens", source=spec)
+    if not isinstance(spec, (str, Path)):
+        lens = getattr(spec, "lens", None)
+        if not isinstance(lens, Lens):
+            raise ConfigError(f"lens: expected a paper lens name, paper:NAME, a design or lens JSON file, a Lens or "
+                              f"a Design, got {type(spec).__name__}")
+        bench = getattr(spec, "bench", None)
+        return ResolvedLens(lens.validate(), lens.name or "lens", bench if isinstance(bench, Bench) else None,
+                            source=spec)
+    text = str(spec)
+    explicit = isinstance(spec, str) and text.lower().startswith("paper:")
+    key = (text.split(":", 1)[1] if explicit else text).lower().replace("-", "_")
+    if isinstance(spec, str) and key in PAPER_LENSES:
+        return ResolvedLens(paper_lens(key), f"paper {key}", source=spec)
+    if explicit:
+        raise ConfigError(f"lens: unknown paper lens {text!r}; use paper:{{{','.join(sorted(PAPER_LENSES))}}}")
+    p = Path(spec)
     if not p.exists():
         raise ConfigError(
-            f"lens: {str(source)!r} is neither a paper lens ({', '.join(sorted(PAPER_LENSES))}) nor an existing file"
+            f"lens: {text!r} not found: it is neither a paper lens ({', '.join(sorted(PAPER_LENSES))}) "
+            "nor an existing file"
         )
     data = read_json(p, "lens file")
     if not isinstance(data, dict):
         raise ConfigError(f"lens file {p}: expected a JSON object")
-    return Lens.from_dict(data.get("lens", data), where=f"{p.name}:lens").validate(), data
+    lens = Lens.from_dict(data.get("lens", data), where=f"{p.name}:lens").validate()
+    bench = Bench.from_dict(data["bench"], f"{p.name}:bench") if isinstance(data.get("bench"), dict) else None
+    return ResolvedLens(lens, p.stem, bench, data, source=spec)
+
+
+def load_lens(source) -> tuple[Lens, dict]:
+    """(validated lens, parsed JSON or {}) of ``resolve_lens(source)``."""
+    r = resolve_lens(source)
+    return r.lens, r.data
+
+

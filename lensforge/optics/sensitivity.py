@@ -1,12 +1,24 @@
-"""Sensitivity matrix S = dz/dx and the design metrics built on it.
+"""The one finite-difference Jacobian of the forward model and the one observability
+rule; the sensitivity matrix S = dz/dx and the design metrics built on them.
 
-S (m x 6, um per mm / um per rad) by central differences: all 12 displaced poses
-traced in one batched call, warm-started from the nominal pose's aimed rays.
-Metrics (DESIGN.md) live on the scaled, noise-whitened matrix
-S~ = R^(-1/2) S D, with R the Zernike noise covariance and D = diag(pose_scales):
-rank (singular values above rank_rtol * sigma_max), kappa, sigma_min, the paper's
-cost J = w1 kappa + w2 / sigma_min with a rank-loss penalty, and the Cramer-Rao
-bound (S^T R^-1 S)^-1 on the pose covariance.
+``jacobian``: dz/dx at P poses in one batched trace (12 central-difference poses per
+pose, or 6 forward ones), warm-started from the aimed rays at each pose; one-sided
+where one side leaves the lit pupil. Every estimator, metric and design constraint
+calls it.
+
+``observability``: DESIGN.md's statistical rule on a whitened Jacobian J_w and the
+scales D of its parameters. On S~ = J_w D a direction is unobservable when it is
+numerically null (singular value below rtol * sigma_max) or when its predicted 1-sigma
+(Fisher information S~^T S~) exceeds its scale (singular value below 1). A parameter
+is unobservable when a null direction moves it (1-sigma inf, never a finite number)
+or when its marginal predicted 1-sigma exceeds its scale. Lens poses use the bench's
+pose scales (1 mm, 1 deg); hand-eye uses its own documented, settable limits.
+
+Metrics (DESIGN.md) live on the scaled, noise-whitened matrix S~ = R^(-1/2) S D, with
+R the Zernike noise covariance and D = diag(pose_scales): rank (singular values above
+rank_rtol * sigma_max), kappa, sigma_min, the paper's cost J = w1 kappa + w2 /
+sigma_min with a rank-loss penalty, the Cramer-Rao bound (S^T R^-1 S)^-1 on the pose
+covariance and the observability of each DOF.
 """
 
 from __future__ import annotations
@@ -20,10 +32,153 @@ from .lens import Lens
 from .pose import DOF_NAMES
 from .shack_hartmann import ForwardModel
 
-__all__ = ["sensitivity", "sensitivity_from_model", "Metrics", "metrics", "metrics_from_S", "paper_cost",
-           "RANK_PENALTY"]
+__all__ = ["jacobian", "observability", "Observability", "sensitivity", "sensitivity_from_model", "Metrics",
+           "metrics", "metrics_from_S", "paper_cost", "RANK_PENALTY"]
 
 RANK_PENALTY = 1e6  # added to J per lost rank
+# a null direction (unit vector, scaled units) "moves" a parameter when its entry exceeds
+# this: exact symmetry gives exactly sparse null vectors; a geometry that is degenerate
+# up to noise (``equilibrate``) gives noise-level entries (~1e-4) elsewhere
+NULL_ENTRY_TOL = 1e-6
+NULL_ENTRY_TOL_NOISY = 1e-2
+
+
+def jacobian(model: ForwardModel, x, *, uv=None, z0=None, central: bool = True, check_range: bool = False):
+    """Finite-difference Jacobians dz/dx (P, m, 6) at poses x (P, 6), one batched trace.
+
+    uv: (P, ...) aimed rays at x (warm start; default: traced here), z0: (P, m)
+    Zernikes at x (needed for one-sided and forward differences; traced with uv when
+    missing). central: 12 displaced poses per pose, one-sided where one side is unlit
+    (a column with both sides unlit is zero); else forward differences (6 per pose).
+    Units: um per mm (tx, ty, tz), um per rad (rx, ry, rz); steps: bench.fd_steps.
+    Returns (J, complete, result): complete (P,) all displaced poses measurable;
+    result: the ZernikeResult of the displaced poses (P*12 or P*6 rows).
+    """
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    P = x.shape[0]
+    if uv is None or z0 is None:
+        base = model.evaluate(x, check_range=check_range)
+        uv, z0 = base.uv, base.z
+    h = np.asarray(model.bench.fd_steps, dtype=float)
+    if not central:
+        poses = (x[:, None, :] + np.diag(h)[None]).reshape(-1, 6)
+        res = model.evaluate(poses, uv0=np.repeat(uv, 6, axis=0), check_range=check_range)
+        zp = res.z.reshape(P, 6, -1)
+        vp = res.valid.reshape(P, 6)
+        J = np.where(vp[..., None], (zp - z0[:, None]) / h[None, :, None], 0.0)
+        return J.transpose(0, 2, 1), vp.all(axis=1), res
+    steps = np.concatenate([np.diag(h), -np.diag(h)])  # (12, 6)
+    poses = (x[:, None, :] + steps[None]).reshape(-1, 6)
+    res = model.evaluate(poses, uv0=np.repeat(uv, 12, axis=0), check_range=check_range)
+    z = res.z.reshape(P, 12, -1)
+    v = res.valid.reshape(P, 12)
+    zp, zm, vp, vm = z[:, :6], z[:, 6:], v[:, :6], v[:, 6:]
+    cen = (zp - zm) / (2 * h[None, :, None])
+    fwd = (zp - z0[:, None]) / h[None, :, None]
+    bwd = (z0[:, None] - zm) / h[None, :, None]
+    J = np.where((vp & vm)[..., None], cen, np.where(vp[..., None], fwd, np.where(vm[..., None], bwd, 0.0)))
+    return J.transpose(0, 2, 1), v.all(axis=1), res
+
+
+@dataclass(frozen=True)
+class Observability:
+    """Observability of n parameters from a whitened Jacobian (see ``observability``).
+
+    observable: (n,) bool per parameter; std: (n,) predicted 1-sigma in the
+    parameters' units (inf where a null direction moves the parameter); cov: (n, n)
+    predicted covariance (pseudo-inverse on the non-null subspace when rank is lost);
+    rank: numerical rank; rank_tol: absolute singular-value threshold on S~;
+    singular_values: of S~ = J_w D (descending); null_space: (n, n - rank) numerically
+    null directions; weak_space: (n, k) directions whose predicted 1-sigma exceeds
+    their scale (singular value < limit) but are not null (both in scaled units u =
+    x / D); names: parameter names.
+    """
+
+    observable: np.ndarray
+    std: np.ndarray
+    cov: np.ndarray
+    rank: int
+    rank_tol: float
+    singular_values: np.ndarray
+    null_space: np.ndarray
+    weak_space: np.ndarray
+    names: tuple = DOF_NAMES
+
+    @property
+    def all_observable(self) -> bool:
+        return bool(self.observable.all()) and self.weak_space.shape[1] == 0
+
+    @property
+    def unobservable(self) -> tuple:
+        """Names of the unobservable parameters."""
+        return tuple(n for n, o in zip(self.names, self.observable) if not o)
+
+    @property
+    def null_names(self) -> tuple:
+        """Names of the parameters a numerically null direction moves."""
+        return tuple(n for n, s in zip(self.names, self.std) if not np.isfinite(s))
+
+    @property
+    def unobservable_directions(self) -> np.ndarray:
+        """(n, k) unit directions (scaled units) that are null or weaker than their scale."""
+        return np.concatenate([self.null_space, self.weak_space], axis=1)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: per-parameter flag, unobservable names, the names moved by a null
+        direction, and the unobservable directions (scaled units, one dict each)."""
+        return {"observable": {n: bool(o) for n, o in zip(self.names, self.observable)},
+                "unobservable": list(self.unobservable),
+                "null": list(self.null_names),
+                "unobservable_directions": [{n: round(float(c), 6) for n, c in zip(self.names, v)}
+                                            for v in self.unobservable_directions.T]}
+
+
+def observability(Jw, scales, rtol: float, limit: float = 1.0, names=DOF_NAMES,
+                  equilibrate: bool = False) -> Observability:
+    """DESIGN.md's observability rule on a whitened Jacobian Jw (rows, n).
+
+    scales: (n,) the parameters' scales D (the 1-sigma beyond which a parameter counts
+    as not measured; lens poses: bench.pose_scales); rtol: relative singular-value
+    threshold of numerical rank, on S~ = Jw D, or with ``equilibrate`` on Jw with unit
+    column norms (a unit-free test of the geometry alone: noise scales all rows and
+    leaves it unchanged); limit: predicted 1-sigma, in units of D, above which a
+    parameter or direction is unobservable (1: the scale itself).
+    """
+    Jw = np.asarray(Jw, dtype=float)
+    D = np.asarray(scales, dtype=float)
+    n = Jw.shape[1]
+    St = Jw * D
+    _, sv, Vt = np.linalg.svd(St, full_matrices=St.shape[0] < n)
+    sv = np.concatenate([sv, np.zeros(n - sv.size)])
+    if equilibrate:
+        d = np.linalg.norm(Jw, axis=0)
+        d[d == 0] = 1.0
+        _, se, Vte = np.linalg.svd(Jw / d, full_matrices=Jw.shape[0] < n)
+        se = np.concatenate([se, np.zeros(n - se.size)])
+        tol = rtol * se[0] if se[0] > 0 else 0.0
+        rank = int(np.sum(se > tol))
+        null = Vte[rank:].T / (d * D)[:, None]  # equilibrated -> scaled units
+        null = np.linalg.qr(null)[0] if null.shape[1] else null
+        # the non-null subspace of S~: the orthogonal complement of the null directions
+        Q = np.linalg.svd(np.eye(n) - null @ null.T)[0][:, :rank]
+        Sr = St @ Q
+        _, sr, Vr = np.linalg.svd(Sr, full_matrices=False)
+        cov_scaled = (Q @ Vr.T / sr**2) @ (Q @ Vr.T).T
+        weak = (Q @ Vr.T)[:, sr < 1.0 / limit]
+    else:
+        tol = rtol * sv[0] if sv[0] > 0 else 0.0
+        rank = int(np.sum(sv > tol))
+        null = Vt[rank:].T
+        F = St.T @ St
+        cov_scaled = np.linalg.inv(F) if rank == n else np.linalg.pinv(F, rcond=rtol**2)
+        weak = Vt[:rank][sv[:rank] < 1.0 / limit].T
+    std_scaled = np.sqrt(np.clip(np.diag(cov_scaled), 0, None))
+    if rank < n:
+        involved = np.any(np.abs(null) > (NULL_ENTRY_TOL_NOISY if equilibrate else NULL_ENTRY_TOL), axis=1)
+        std_scaled = np.where(involved, np.inf, std_scaled)
+    return Observability(observable=std_scaled <= limit, std=std_scaled * D, cov=cov_scaled * np.outer(D, D),
+                         rank=rank, rank_tol=float(tol), singular_values=sv, null_space=null, weak_space=weak,
+                         names=tuple(names))
 
 
 def sensitivity_from_model(model: ForwardModel, pose=None, raise_invalid: bool = True):
@@ -33,21 +188,17 @@ def sensitivity_from_model(model: ForwardModel, pose=None, raise_invalid: bool =
     S is None when any of the 13 poses is not measurable.
     """
     x0 = np.zeros(6) if pose is None else np.asarray(pose, dtype=float)
-    h = np.asarray(model.bench.fd_steps, dtype=float)
     base = model.evaluate(x0[None, :])
     if not base.valid[0]:
         if raise_invalid:
             base.raise_if_invalid()
         return None, base.z[0], base
-    steps = np.diag(h)
-    poses = np.concatenate([x0 + steps, x0 - steps])
-    res = model.evaluate(poses, uv0=np.broadcast_to(base.uv, (12,) + base.uv.shape[1:]))
-    if not res.valid.all():
+    J, complete, res = jacobian(model, x0[None, :], uv=base.uv, z0=base.z, check_range=True)
+    if not complete[0]:
         if raise_invalid:
             res.raise_if_invalid()
         return None, base.z[0], res
-    S = (res.z[:6] - res.z[6:]).T / (2.0 * h)
-    return S, base.z[0], res
+    return J[0], base.z[0], res
 
 
 def sensitivity(bench: Bench, lens: Lens, pose=None) -> np.ndarray:
@@ -75,7 +226,8 @@ class Metrics:
     J: paper cost; crlb: (6, 6) pose covariance bound (mm, rad); crlb_std: (6,)
     per-DOF std (mm, rad; inf for unobservable DOF); raw_*: of S in its own units
     (um/mm, um/rad); S: (m, 6); R: (m, m) um^2; z0: Zernikes at the pose (um);
-    null_space: (6, 6 - rank) unobservable pose directions (scaled units).
+    null_space: (6, 6 - rank) numerically null pose directions (scaled units);
+    observability: the statistical rule per DOF (``observability``).
     """
 
     rank: int
@@ -94,6 +246,7 @@ class Metrics:
     z0: np.ndarray
     null_space: np.ndarray
     weights: tuple = (1.0, 1.0)
+    observability: Observability | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready summary (inf -> None) with units in the keys."""
@@ -117,35 +270,23 @@ class Metrics:
             },
             "raw_singular_values": [f(v) for v in self.raw_singular_values],
             "raw_kappa": f(self.raw_kappa),
+            **(self.observability.to_dict() if self.observability is not None else {}),
         }
 
 
 def metrics_from_S(S: np.ndarray, R: np.ndarray, bench: Bench, z0=None, weights=(1.0, 1.0)) -> Metrics:
     """Metrics of a sensitivity matrix S (m, 6) with Zernike noise covariance R (m, m)."""
     L = np.linalg.cholesky(R)
-    D = np.asarray(bench.pose_scales, dtype=float)
-    St = np.linalg.solve(L, S) * D  # whitened and scaled; same singular values as R^-1/2 S D
-    U, sv, Vt = np.linalg.svd(St, full_matrices=False)
-    tol = bench.rank_rtol * sv[0] if sv[0] > 0 else 0.0
-    rank = int(np.sum(sv > tol))
+    obs = observability(np.linalg.solve(L, S), bench.pose_scales, bench.rank_rtol)
+    sv = obs.singular_values
     kappa = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
-    null = Vt[rank:].T
-    F = St.T @ St  # scaled Fisher information
-    if rank == S.shape[1]:
-        cov_scaled = np.linalg.inv(F)
-        std_scaled = np.sqrt(np.diag(cov_scaled))
-    else:
-        cov_scaled = np.linalg.pinv(F, rcond=bench.rank_rtol**2)
-        std_scaled = np.sqrt(np.clip(np.diag(cov_scaled), 0, None))
-        involved = np.any(np.abs(null) > 1e-6, axis=1)
-        std_scaled = np.where(involved, np.inf, std_scaled)
-    crlb = cov_scaled * np.outer(D, D)
     raw_sv = np.linalg.svd(S, compute_uv=False)
     return Metrics(
-        rank=rank, rank_tol=tol, kappa=float(kappa), sigma_min=float(sv[-1]), sigma_max=float(sv[0]),
-        singular_values=sv, J=paper_cost(sv, rank, weights), crlb=crlb, crlb_std=std_scaled * D,
+        rank=obs.rank, rank_tol=obs.rank_tol, kappa=float(kappa), sigma_min=float(sv[-1]), sigma_max=float(sv[0]),
+        singular_values=sv, J=paper_cost(sv, obs.rank, weights), crlb=obs.cov, crlb_std=obs.std,
         raw_singular_values=raw_sv, raw_kappa=float(raw_sv[0] / raw_sv[-1]) if raw_sv[-1] > 0 else np.inf,
-        S=S, R=R, z0=np.zeros(S.shape[0]) if z0 is None else z0, null_space=null, weights=tuple(weights),
+        S=S, R=R, z0=np.zeros(S.shape[0]) if z0 is None else z0, null_space=obs.null_space, weights=tuple(weights),
+        observability=obs,
     )
 
 

@@ -21,22 +21,16 @@ import math
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
-
 from ..errors import ConfigError
-from .study import StudyConfig, verify
+from ..manufacturing.tolerances import COMPONENT_SPECS
+from ..optics.lens import resolve_lens
+from .study import StudyConfig, resolve_tolerances, verify
 
 __all__ = ["SensitivityRow", "BudgetRow", "Budget", "sensitivity_analysis", "tolerance_budget", "scaled_all",
            "MAIN_FIELD"]
 
 # the magnitude that names a component's size in the budget table (after Tolerances.resolved)
-MAIN_FIELD = {
-    "polishing": ("polish_depth_mm", "mm"),
-    "form": ("form_rms_mm", "mm RMS"),
-    "thickness": ("thickness_sigma_mm", "mm (1 sigma)"),
-    "index": ("index_sigma", "(1 sigma)"),
-    "shrinkage": ("shrinkage_sigma", "(1 sigma, linear)"),
-    "ripple": ("ripple_amplitude_mm", "mm"),
-}
+MAIN_FIELD = {name: c.main for name, c in COMPONENT_SPECS.items()}
 
 
 def scaled_all(tolerances, factor: float):
@@ -88,9 +82,8 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
                          workers: int | None = 0, scheduler: str | None = None, client=None,
                          progress: bool = False) -> list[SensitivityRow]:
     """Rows "none" (noise only), one per component (alone, at its given size), "all"."""
-    from .study import resolve_lens, resolve_tolerances
-
-    lens, bench = resolve_lens(lens, bench)
+    r = resolve_lens(lens)
+    lens, bench = r.lens, r.bench_or(bench)
     tol = resolve_tolerances(tolerances)
     if tol is None:
         raise ConfigError("tolerances: the sensitivity analysis needs a tolerance model")
@@ -233,9 +226,8 @@ def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: fl
     lens may make the calibration at most k times worse than a perfect lens)."""
     from dataclasses import replace
 
-    from .study import resolve_lens, resolve_tolerances
-
-    lens, bench = resolve_lens(lens, bench)
+    r = resolve_lens(lens)
+    lens, bench = r.lens, r.bench_or(bench)
     tol = resolve_tolerances(tolerances)
     if tol is None:
         raise ConfigError("tolerances: the budget needs a tolerance model (--tolerances T.toml)")

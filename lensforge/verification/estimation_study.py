@@ -35,10 +35,10 @@ from ..fileio import write_atomic
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.pose import DOF_NAMES
-from ..optics.sensitivity import sensitivity_from_model
+from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
-from ..calibration.pose_estimation import METHODS, UnobservableWarning, estimate_pose_model
+from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
 from ..display import UNOBSERVABLE, UNOBSERVABLE_NOTE
 from .statistics import box_stats, median
 
@@ -134,17 +134,7 @@ def _crlb_var(model: ForwardModel, x: np.ndarray) -> np.ndarray:
     S, _, _ = sensitivity_from_model(model, x, raise_invalid=False)
     if S is None:
         return np.full(6, np.nan)
-    R = model.noise_cov
-    F = S.T @ np.linalg.solve(R, S)
-    D = np.asarray(model.bench.pose_scales, dtype=float)
-    Fs = F * np.outer(D, D)
-    w, V = np.linalg.eigh(Fs)
-    keep = w > (model.bench.rank_rtol**2) * w[-1]
-    cov = (V[:, keep] / w[keep]) @ V[:, keep].T * np.outer(D, D)
-    var = np.diag(cov).copy()
-    for v in V[:, ~keep].T:  # the DOF each null direction mostly moves is unbounded
-        var[int(np.argmax(np.abs(v)))] = np.inf
-    return var
+    return metrics_from_S(S, model.noise_cov, model.bench).crlb_std ** 2
 
 
 def swing_equivalent(x: np.ndarray) -> np.ndarray:
@@ -164,8 +154,8 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
                initial: InitialPoseModel | None = None, commanded=None, tick=None, **estimator_options) -> LensStudy:
     """Run ``trials`` seeded estimates of one lens (see module docstring); ``tick()`` is called
     after each trial (a progress bar's advance)."""
-    if method not in METHODS:
-        raise ConfigError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    if method not in ESTIMATORS:
+        raise ConfigError(f"method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if int(trials) != trials or trials < 1:
         raise ConfigError(f"trials: expected an integer >= 1, got {trials!r}")
     initial = initial or InitialPoseModel()

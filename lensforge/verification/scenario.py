@@ -49,7 +49,7 @@ from ..optics.shack_hartmann import ForwardModel
 from ..calibration.handeye import solve_handeye
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_design import candidate_poses, design_poses, predicted_uncertainty
-from ..calibration.pose_estimation import UnobservableWarning, estimate_pose_model
+from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
 from ..calibration.robot import PAPER_Z, Scene, flange_pose, paper_scene, random_lens_poses
 from .statistics import median
 
@@ -108,8 +108,8 @@ class ScenarioConfig:
     jac: str = "central"
 
     def __post_init__(self):
-        if self.estimator not in ("lm", "ukf"):
-            raise ConfigError(f"scenario.estimator: {self.estimator!r} is not lm or ukf")
+        if self.estimator not in ESTIMATORS:
+            raise ConfigError(f"scenario.estimator: {self.estimator!r} is not one of {', '.join(ESTIMATORS)}")
         if self.n_calibration < 3 or self.n_convergence < 0:
             raise ConfigError("scenario: n_calibration must be >= 3 and n_convergence >= 0")
 

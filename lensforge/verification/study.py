@@ -18,12 +18,9 @@ into three fixed sub-streams: 0 = as-built lens, 1 = scene (grasp, robot noise),
 as-built deviations, never the noise draws (common random numbers), and zero
 tolerances give exactly the noise-only trial (the as-built stream is unused).
 
-Pose estimation is the same whitened least-squares estimator as
-``pose_estimation.estimate_pose`` (objective |L^-1 (h(x) - z)|^2, central-difference
-Jacobian, rank-deficient directions held at x0), run as one Levenberg-Marquardt
-loop batched over all poses of a trial so that every forward-model call traces
-all poses together. Jacobians are reused only where that is exact: after a
-rejected step the point, hence the Jacobian, is unchanged.
+Pose estimation is calibration's one estimator, ``estimate_poses_batch`` (whitened
+least squares, Levenberg-Marquardt batched over all poses of a trial so that every
+forward-model call traces all poses together).
 """
 
 from __future__ import annotations
@@ -39,13 +36,14 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError, LensforgeError
 from ..optics.bench import Bench
-from ..optics.lens import Lens
+from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
 from ..optics.shack_hartmann import ForwardModel
+from ..calibration.pose_estimation import estimate_poses_batch
 from .statistics import error_stats, outcome_counts
 
-__all__ = ["StudyConfig", "StudyResult", "verify", "estimate_poses_batch", "BatchPoseEstimate", "run_trial",
-           "StudyContext", "summarize_errors", "SCHEMA_VERSION"]
+__all__ = ["StudyConfig", "StudyResult", "verify", "run_trial", "StudyContext", "summarize_errors",
+           "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
 
@@ -98,185 +96,6 @@ class StudyConfig:
 
 
 # ----------------------------------------------------------------------------- batched pose estimation
-
-
-@dataclass(frozen=True)
-class BatchPoseEstimate:
-    """Pose estimates of P measurements.
-
-    poses: (P, 6) mm, rad; cov: (P, 6, 6) Gauss-Newton covariance (J^T R^-1 J)^-1 at
-    the estimate (inf on the diagonal of unobservable DOF); chi2: (P,) whitened
-    residual sum of squares; converged: (P,) met the tolerance with the pupil lit
-    and in the bench's range; iterations: LM iterations run; n_evals: poses traced.
-    """
-
-    poses: np.ndarray
-    cov: np.ndarray
-    chi2: np.ndarray
-    converged: np.ndarray
-    iterations: int
-    n_evals: int
-    out_of_range: np.ndarray = None
-
-
-def _whiten(Li, d):
-    """L^-1 d for d (..., m), given Li = L^-1 (m, m)."""
-    return d @ Li.T
-
-
-def _jacobian(model: ForwardModel, x, uv, z0, valid0, L, central: bool = True):
-    """Whitened finite-difference Jacobian (P, m, 6) at poses x (P, 6): central (one
-    trace of 12P poses; one-sided where one side is unlit, as estimate_pose does) or
-    forward (6P poses)."""
-    P = x.shape[0]
-    h = np.asarray(model.bench.fd_steps, dtype=float)
-    if not central:
-        poses = (x[:, None, :] + np.diag(h)[None]).reshape(-1, 6)
-        res = model.evaluate(poses, uv0=np.repeat(uv, 6, axis=0), check_range=False)
-        zp = res.z.reshape(P, 6, -1)
-        J = np.where(res.valid.reshape(P, 6)[..., None], (zp - z0[:, None]) / h[None, :, None], 0.0)
-        return _whiten(L, J).transpose(0, 2, 1), 6 * P
-    steps = np.concatenate([np.diag(h), -np.diag(h)])  # (12, 6)
-    poses = (x[:, None, :] + steps[None]).reshape(-1, 6)
-    uv0 = np.repeat(uv, 12, axis=0)
-    res = model.evaluate(poses, uv0=uv0, check_range=False)
-    z = res.z.reshape(P, 12, -1)
-    v = res.valid.reshape(P, 12)
-    zp, zm, vp, vm = z[:, :6], z[:, 6:], v[:, :6], v[:, 6:]
-    central = (zp - zm) / (2 * h[None, :, None])
-    fwd = (zp - z0[:, None]) / h[None, :, None]
-    bwd = (z0[:, None] - zm) / h[None, :, None]
-    J = np.where((vp & vm)[..., None], central, np.where(vp[..., None], fwd, np.where(vm[..., None], bwd, 0.0)))
-    return _whiten(L, J).transpose(0, 2, 1), 12 * P  # (P, m, 6)
-
-
-def estimate_poses_batch(model: ForwardModel, z_measured, x0, *, max_iter: int = 40, xtol: float = 1e-10,
-                         ftol: float = 1e-10, fast_start: bool = True) -> BatchPoseEstimate:
-    """Whitened least-squares pose estimates for P measurements at once (LM, batched).
-
-    z_measured: (P, m) Zernikes (um); x0: (P, 6) initial poses (mm, rad). Same
-    objective as ``estimate_pose(method="lm")``; each pose has its own damping and
-    stops on its own (relative step < xtol in scaled units, or relative cost change
-    < ftol). Pose directions unobservable at x0 (bench.rank_rtol, as in
-    ``metrics``) stay at x0 with inf variance. fast_start: forward-difference
-    Jacobians until the cost stalls (same fixed point, fewer traces).
-    """
-    Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
-    x = np.array(np.atleast_2d(x0), dtype=float)
-    P = x.shape[0]
-    bench = model.bench
-    L = model.whitener
-    D = np.asarray(bench.pose_scales, dtype=float)
-    n_evals = 0
-
-    res = model.evaluate(x, check_range=False)
-    n_evals += P
-    uv, zc, valid = res.uv.copy(), res.z.copy(), res.valid.copy()
-    r = _whiten(L, zc - Z)
-    cost = np.where(valid, np.sum(r * r, axis=1), np.inf)
-    lam = np.full(P, 1e-10)  # Gauss-Newton first; damp only after a rejected step
-    active = valid.copy()
-    converged = np.zeros(P, bool)
-    J = np.zeros((P, Z.shape[1], 6))
-    need_J = valid.copy()
-    obs_mask = np.ones((P, 6), bool)
-    # Forward differences (half the traces) while far from the minimum; central ones
-    # once the cost stalls, and only central-Jacobian steps may end the iteration, so
-    # the fixed point J^T r = 0 is the central-difference one of estimate_pose.
-    near = np.full(P, not fast_start)
-    J_central = np.zeros(P, bool)
-    lim = bench.pose_limits
-    first = True
-    it = 0
-    for it in range(1, max_iter + 1):
-        for cen in (True, False):
-            idx = np.flatnonzero(active & need_J & (near == cen))
-            if idx.size:
-                Jn, ne = _jacobian(model, x[idx], uv[idx], zc[idx], valid[idx], L, central=cen)
-                J[idx] = Jn * D  # scaled: d r / d u, u = x / D
-                J_central[idx] = cen
-                n_evals += ne
-                need_J[idx] = False
-        if first:
-            # rank test at x0 on the scaled whitened Jacobian (as metrics / estimate_pose)
-            for p in np.flatnonzero(valid):
-                _, s, Vt = np.linalg.svd(J[p])
-                k = int(np.sum(s > bench.rank_rtol * s[0]))
-                if k < 6:
-                    null = Vt[k:].T
-                    obs_mask[p] = ~np.any(np.abs(null) > 1e-6, axis=1)
-            first = False
-        a = np.flatnonzero(active)
-        if a.size == 0:
-            break
-        Ja, ra = J[a] * obs_mask[a][:, None, :], r[a]
-        A = np.einsum("pmi,pmj->pij", Ja, Ja)
-        g = np.einsum("pmi,pm->pi", Ja, ra)
-        dA = np.einsum("pii->pi", A)
-        # Marquardt damping on the diagonal; unobservable directions pinned (identity, zero gradient)
-        M = A + (lam[a, None] * np.where(dA > 0, dA, 1.0) + (~obs_mask[a]))[:, :, None] * np.eye(6)[None]
-        du = -np.linalg.solve(M, g[..., None])[..., 0]
-        xn = x[a] + du * D
-        rn_res = model.evaluate(xn, uv0=uv[a], check_range=False)
-        n_evals += a.size
-        rn = _whiten(L, rn_res.z - Z[a])
-        cn = np.where(rn_res.valid, np.sum(rn * rn, axis=1), np.inf)
-        acc = cn <= cost[a]
-        # predicted decrease of the linear model |r + J du|^2 - |r|^2
-        pred = -(2.0 * np.einsum("pi,pi->p", g, du) + np.einsum("pi,pij,pj->p", du, A, du))
-        u_norm = np.linalg.norm(x[a] / D, axis=1)
-        tiny = ((np.linalg.norm(du, axis=1) <= xtol * (xtol + u_norm))
-                | (pred <= ftol * np.maximum(cost[a], 1e-300)))
-        ai = a[acc]
-        small_step = tiny[acc]
-        small_cost = (cost[ai] - cn[acc]) <= ftol * cost[ai]
-        stalled = (cost[ai] - cn[acc]) <= 0.1 * cost[ai]
-        near[ai] |= stalled | small_step | small_cost
-        fin = J_central[ai]
-        small_step &= fin
-        small_cost &= fin
-        x[ai], r[ai], cost[ai], zc[ai] = xn[acc], rn[acc], cn[acc], rn_res.z[acc]
-        uv[ai] = rn_res.uv[acc]
-        lam[ai] = np.maximum(lam[ai] / 10.0, 1e-10)
-        need_J[ai] = True
-        rej = a[~acc]
-        # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly;
-        # a forward-difference J that fails to descend is replaced by the central one
-        fwd_rej = rej[~J_central[rej]]
-        near[fwd_rej] = True
-        need_J[fwd_rej] = True
-        rej = rej[J_central[rej]]
-        lam[rej] = np.maximum(lam[rej] * 10.0, 1e-4)
-        done = ai[small_step | small_cost]
-        converged[done] = True
-        active[done] = False
-        stuck = rej[tiny[np.isin(a, rej)] | (lam[rej] > 1e12)]
-        converged[stuck] = True  # no descent direction left: a (possibly flat) minimum
-        active[stuck] = False
-        # an estimate far outside the bench's pose range is abandoned (reported out of range)
-        far = ai[(np.abs(x[ai, :3]) > 2 * lim.translation_mm).any(axis=1)
-                 | (np.linalg.norm(x[ai, 3:], axis=1) > 2 * lim.rotation_rad)]
-        converged[far] = True
-        active[far] = False
-    # covariance from the Jacobian at the last linearisation point
-    cov = np.full((P, 6, 6), np.nan)
-    for p in np.flatnonzero(valid):
-        Jp = J[p][:, obs_mask[p]]
-        c = np.zeros((6, 6))
-        try:
-            sub = np.linalg.inv(Jp.T @ Jp)
-        except np.linalg.LinAlgError:
-            sub = np.linalg.pinv(Jp.T @ Jp)
-        c[np.ix_(obs_mask[p], obs_mask[p])] = sub
-        c *= np.outer(D, D)
-        for i in np.flatnonzero(~obs_mask[p]):
-            c[i, i] = np.inf
-        cov[p] = c
-    in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
-                & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
-    ok = converged & np.isfinite(cost) & in_range
-    return BatchPoseEstimate(poses=x, cov=cov, chi2=np.where(np.isfinite(cost), cost, np.inf), converged=ok,
-                             iterations=it, n_evals=n_evals, out_of_range=converged & np.isfinite(cost) & ~in_range)
 
 
 # ----------------------------------------------------------------------------- one trial
@@ -495,34 +314,6 @@ class StudyResult:
         return d
 
 
-def resolve_lens(design_or_lens, bench: Bench | None = None) -> tuple[Lens, Bench]:
-    """(lens, bench) from a Lens, a Design (.lens, .bench), a paper lens name or a
-    design/lens JSON path; ``bench`` overrides the design's bench."""
-    from ..optics.lens import PAPER_LENSES, paper_lens
-
-    obj = design_or_lens
-    des_bench = None
-    if isinstance(obj, (str, Path)):
-        key = str(obj).lower().replace("-", "_")
-        if isinstance(obj, str) and key in PAPER_LENSES:
-            obj = paper_lens(key)
-        else:
-            from ..optics.lens import load_lens
-
-            lens, data = load_lens(str(obj))
-            if isinstance(data, dict) and isinstance(data.get("bench"), dict):
-                des_bench = Bench.from_dict(data["bench"], "design.bench")
-            obj = lens
-    if not isinstance(obj, Lens):
-        lens = getattr(obj, "lens", None)
-        if not isinstance(lens, Lens):
-            raise ConfigError(f"design: expected a Lens, a Design, a paper lens name or a JSON path, got "
-                              f"{type(design_or_lens).__name__}")
-        des_bench = getattr(obj, "bench", None)
-        obj = lens
-    return obj.validate(), (bench or des_bench or Bench.default())
-
-
 def resolve_tolerances(tolerances):
     """A Tolerances from a Tolerances, a TOML path, or None (noise only -> None)."""
     if tolerances is None:
@@ -610,7 +401,8 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
 
     if int(n_lenses) != n_lenses or n_lenses < 1:
         raise ConfigError(f"n_lenses: need an integer >= 1, got {n_lenses!r}")
-    lens, bench = resolve_lens(design_or_lens, bench)
+    r = resolve_lens(design_or_lens)
+    lens, bench = r.lens, r.bench_or(bench)
     tol = resolve_tolerances(tolerances)
     if config is None:
         config = StudyConfig(n_poses=int(n_poses), self_calibrate=bool(self_calibrate))
