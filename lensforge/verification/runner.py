@@ -28,6 +28,7 @@ import json
 import os
 import sqlite3
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -251,10 +252,12 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
             raise ConfigError(f"scheduler: cannot reach Dask scheduler {scheduler!r} ({e}); check the address") from None
     else:
         n = int(workers) if workers is not None else (os.cpu_count() or 1)
-        cluster = LocalCluster(
-            n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=None,
-            env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
-        )
+        with warnings.catch_warnings():  # "port 8787 is already in use ... Hosting the HTTP server on port N
+            warnings.filterwarnings("ignore", message=".*Hosting the HTTP server.*")  # instead": noise to a user
+            cluster = LocalCluster(
+                n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=None,
+                env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
+            )
         client = Client(cluster)
     try:
         client.run(_pin_threads)
