@@ -2,7 +2,7 @@
 
 Run: .venv/bin/python benchmarks/bench_optics.py
 Prints rays/s for ~800 and ~10,000 rays (13 poses batched, as S(p) does) and the
-wall time of one S(p) (13 poses x ~113 aimed lenslet rays + fit) per paper lens.
+wall time of one S(p) (13 poses x ~113 lenslets x 4 aimed sub-aperture rays + fit) per paper lens.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def main():
         sensitivity_from_model(model)
         t = best_of(lambda: sensitivity_from_model(model), repeat=5, number=10)
         _, _, res = sensitivity_from_model(model)
-        print(f"{name:20s} S(p): {t * 1e3:7.3f} ms  (13 poses x {model.pupil.n_lenslets} lenslets, "
+        print(f"{name:20s} S(p): {t * 1e3:7.3f} ms  (13 poses x {model.pupil.n_lenslets} lenslets x {model.quad_weights.size} rays, "
               f"{res.rays_traced} rays in the 12 displaced poses)")
         t = best_of(lambda: lf.metrics(bench, lens), repeat=3, number=5)
         print(f"{name:20s} metrics (S + SVD + CRLB, from scratch): {t * 1e3:7.3f} ms")

@@ -17,6 +17,7 @@ _EXPORTS = {
     "load_bench": "lensforge.optics.bench",
     "save_bench": "lensforge.optics.bench",
     "Lens": "lensforge.optics.lens",
+    "resolve_lens": "lensforge.optics.lens",
     "paper_lens": "lensforge.optics.lens",
     "PAPER_LENSES": "lensforge.optics.lens",
     "load_material": "lensforge.optics.materials",
@@ -25,6 +26,8 @@ _EXPORTS = {
     "sensitivity": "lensforge.optics.sensitivity",
     "metrics": "lensforge.optics.sensitivity",
     "Metrics": "lensforge.optics.sensitivity",
+    "jacobian": "lensforge.optics.sensitivity",
+    "observability": "lensforge.optics.sensitivity",
     "trace_rays": "lensforge.optics.trace",
     # design
     "optimize_design": "lensforge.design.optimize",
@@ -39,9 +42,17 @@ _EXPORTS = {
     "load_tolerances": "lensforge.manufacturing.tolerances",
     # calibration
     "estimate_pose": "lensforge.calibration.pose_estimation",
+    "estimate_poses_batch": "lensforge.calibration.pose_estimation",
     "solve_handeye": "lensforge.calibration.handeye",
+    "plan": "lensforge.calibration.session",
+    "calibrate": "lensforge.calibration.session",
+    "estimate": "lensforge.calibration.session",
+    "load_robot": "lensforge.calibration.robot",
+    "read_robot_poses": "lensforge.calibration.formats",
+    "read_wfs": "lensforge.calibration.formats",
     # verification (simulation of the calibration)
     "verify": "lensforge.verification.study",
+    "simulate_session": "lensforge.verification.session_sim",
     # errors
     "LensforgeError": "lensforge.errors",
     "ConfigError": "lensforge.errors",

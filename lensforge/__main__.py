@@ -1,4 +1,4 @@
 """python -m lensforge"""
-from .cli import main
+from .entry import main
 
 main()

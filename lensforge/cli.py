@@ -20,6 +20,7 @@ import sys
 
 import typer
 
+from .commands.bench import calibrate_cmd, estimate_cmd, plan_cmd, simulate_session_cmd
 from .commands.demo import demo
 from .commands.design import compare, design, plot
 from .commands.estimate import estimate_study, scenario
@@ -28,6 +29,7 @@ from .commands.export import export_cmd
 from .commands.handeye import handeye_cmd
 from .commands.study import budget_cmd, study_cmd
 from .errors import LensforgeError
+from .interrupts import Interrupted, hard_exit, sigint_guard
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, rich_markup_mode=None,
                   help="Design, export and verify freeform lenses for Shack-Hartmann pose estimation.")
@@ -38,9 +40,13 @@ _COMMANDS = {  # command name -> function, in the order of ``lensforge --help``
     "plot": plot,
     "compare": compare,
     "export": export_cmd,
+    "estimate": estimate_cmd,
     "estimate-study": estimate_study,
     "scenario": scenario,
     "handeye": handeye_cmd,
+    "plan": plan_cmd,
+    "calibrate": calibrate_cmd,
+    "simulate-session": simulate_session_cmd,
     "study": study_cmd,
     "budget": budget_cmd,
     "demo": demo,
@@ -54,28 +60,65 @@ def _is_click_exception(e: BaseException, name: str) -> bool:
     return any(cls.__name__ == name and "click" in cls.__module__ for cls in type(e).__mro__)
 
 
-def main() -> None:
-    """Entry point: run the app; a user's mistake prints one line ``error: ...`` and exits 2."""
-    try:
-        rc = app(standalone_mode=False)
-    except LensforgeError as e:
-        typer.echo(f"error: {e}", err=True)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        typer.echo("error: interrupted", err=True)
-        sys.exit(130)
-    except Exception as e:
-        # click / Typer-bundled click: usage errors, bad option values, aborts, exits
-        if _is_click_exception(e, "Exit") or type(e).__name__ == "Exit":
-            sys.exit(getattr(e, "exit_code", 0))
-        if _is_click_exception(e, "Abort"):
-            typer.echo("error: aborted", err=True)
-            sys.exit(1)
-        if _is_click_exception(e, "ClickException"):
-            msg = e.format_message() if hasattr(e, "format_message") else str(e)
-            typer.echo(f"error: {' '.join(msg.split())}", err=True)
-            sys.exit(2 if _is_click_exception(e, "UsageError") else getattr(e, "exit_code", 1) or 1)
-        raise
+def _os_error_line(e: OSError) -> str:
+    """One line for an operating-system error (disk full, read-only folder, path under a file)."""
+    import errno
+
+    where = e.filename or "output"
+    why = {errno.ENOSPC: "the disk is full; free space or choose another -o/--out",
+           errno.EDQUOT: "the disk quota is exhausted; free space or choose another -o/--out",
+           errno.EROFS: "the file system is read-only; choose another -o/--out",
+           errno.EACCES: "permission denied; choose a folder you can write",
+           errno.EPERM: "operation not permitted; choose a folder you can write",
+           errno.ENOTDIR: "a part of the path is a file, not a folder; choose another path",
+           errno.EISDIR: "is a folder; give a file name",
+           errno.EEXIST: "already exists; choose another path"}.get(e.errno, e.strerror or str(e))
+    return f"{where}: {why}"
+
+
+def main(args: list[str] | None = None) -> None:
+    """Entry point: run the app; a user's mistake prints one line ``error: ...`` and exits 2;
+    Ctrl-C prints ``error: interrupted`` and exits 130 (see ``lensforge.interrupts``)."""
+    with sigint_guard() as interrupted:
+        try:
+            rc = app(args=args, prog_name="lensforge", standalone_mode=False)
+        except Interrupted:
+            hard_exit()
+        except LensforgeError as e:
+            _fail(interrupted, f"error: {' '.join(str(e).split())}", 2)
+        except KeyboardInterrupt:
+            hard_exit()
+        except OSError as e:
+            _fail(interrupted, f"error: {_os_error_line(e)}", 2)
+        except MemoryError:
+            _fail(interrupted, "error: out of memory; reduce the problem size (lenses, poses, mesh tolerance)", 2)
+        except Exception as e:
+            # click / Typer-bundled click: usage errors, bad option values, aborts, exits
+            if interrupted():
+                hard_exit()
+            if _is_click_exception(e, "Exit") or type(e).__name__ == "Exit":
+                sys.exit(getattr(e, "exit_code", 0))
+            if _is_click_exception(e, "Abort"):
+                if isinstance(e.__context__, KeyboardInterrupt):
+                    hard_exit()
+                typer.echo("error: aborted", err=True)
+                sys.exit(1)
+            if _is_click_exception(e, "ClickException"):
+                msg = " ".join((e.format_message() if hasattr(e, "format_message") else str(e)).split())
+                if not msg:  # bare `lensforge`: click printed the help
+                    msg = "no command given; pick one of the commands listed above"
+                typer.echo(f"error: {msg}", err=True)
+                sys.exit(2 if _is_click_exception(e, "UsageError") else getattr(e, "exit_code", 1) or 1)
+            raise
+        if interrupted():
+            hard_exit()
     # with standalone_mode=False, typer.Exit(code) comes back as the return value
     if isinstance(rc, int) and rc != 0:
         sys.exit(rc)
+
+
+def _fail(interrupted, line: str, code: int) -> None:
+    if interrupted():  # an error raised while unwinding from Ctrl-C is the interrupt's
+        hard_exit()
+    typer.echo(line, err=True)
+    sys.exit(code)

@@ -27,6 +27,10 @@ class PupilError(LensforgeError, RuntimeError):
     """The Shack-Hartmann pupil is not fully lit, or the beam misses the sensor."""
 
 
+class SensorRangeError(PupilError):
+    """A pupil lenslet's spot leaves the sensor's spot-assignment range (handled like a lost pupil)."""
+
+
 class PoseRangeError(LensforgeError, ValueError):
     """A lens pose lies outside the bench's valid range."""
 

@@ -10,11 +10,13 @@ import json
 import os
 import tempfile
 import tomllib
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import ConfigError
 
-__all__ = ["write_atomic", "read_json", "read_toml", "json_default", "dumps_json"]
+__all__ = ["write_atomic", "read_json", "read_toml", "json_default", "dumps_json", "check_output", "staged_dir",
+           "Staged", "MAX_INPUT_BYTES"]
 
 
 def write_atomic(path, data: bytes | str) -> Path:
@@ -46,28 +48,48 @@ def write_atomic(path, data: bytes | str) -> Path:
 def read_json(path, what: str):
     """Parsed JSON of ``path``; ConfigError naming ``what`` (e.g. "design file") otherwise."""
     p = Path(path)
+    text = _read_text(p, what)
     try:
-        return json.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{what} {p}: not found") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{what} {p}: cannot be read ({e})") from None
+        return json.loads(text)
     except json.JSONDecodeError as e:
         raise ConfigError(f"{what} {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+    except RecursionError:
+        raise ConfigError(f"{what} {p}: nested too deeply to be a lensforge file") from None
 
 
 def read_toml(path, what: str) -> dict:
     """Parsed TOML of ``path``; ConfigError naming ``what`` (e.g. "bench file") otherwise."""
     p = Path(path)
+    text = _read_text(p, what)
     try:
-        with open(p, "rb") as fh:
-            return tomllib.load(fh)
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{what} {p}: not valid TOML ({e})") from None
+    except RecursionError:
+        raise ConfigError(f"{what} {p}: nested too deeply to be a lensforge file") from None
+
+
+# Input files are small; a bigger one is not a lensforge file (and would only fill memory).
+MAX_INPUT_BYTES = 256 * 2**20
+
+
+def _read_text(p: Path, what: str) -> str:
+    """UTF-8 text of an input file; a leading byte-order mark (Windows editors) is dropped."""
+    try:
+        if p.is_dir():
+            raise ConfigError(f"{what} {p}: is a folder; give a file")
+        if p.stat().st_size > MAX_INPUT_BYTES:
+            raise ConfigError(f"{what} {p}: {p.stat().st_size / 2**20:.0f} MiB is too large for a "
+                              f"lensforge input file (limit {MAX_INPUT_BYTES // 2**20} MiB)")
+        data = p.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{what} {p}: not found") from None
     except OSError as e:
-        raise ConfigError(f"{what} {p}: cannot be read ({e})") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{what} {p}: not valid TOML ({e})") from None
+        raise ConfigError(f"{what} {p}: cannot be read ({e.strerror or e})") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{what} {p}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
 
 
 def json_default(o):
@@ -86,3 +108,99 @@ def json_default(o):
 def dumps_json(obj) -> str:
     """Strict (no NaN) indented JSON with numpy support."""
     return json.dumps(obj, indent=2, allow_nan=False, default=json_default)
+
+
+# --- output targets: checked before work starts, written all or nothing ----------------
+
+
+def check_output(path, *, folder: bool, need_mb: float = 1.0, option: str = "-o/--out") -> Path:
+    """Check an output target before any work starts; returns it as a Path.
+
+    folder: the target is a folder (files go inside it) rather than one file. Refused
+    with a ConfigError naming ``option``: a file target that is an existing folder, a
+    folder target that is a file, a path under a file, a folder that cannot be
+    written (read-only, no permission), less than ``need_mb`` MiB free.
+    """
+    import shutil
+
+    p = Path(path)
+    if folder and p.exists() and not p.is_dir():
+        raise ConfigError(f"{option} {p}: is a file, not a folder; choose a folder")
+    if not folder and p.is_dir():
+        raise ConfigError(f"{option} {p}: is a folder; give a file name, e.g. {p / 'out.json'}")
+    anc = p if (folder and p.is_dir()) else p.parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise ConfigError(f"{option} {p}: {anc} is a file, so nothing can be created under it; choose another path")
+    try:
+        fd, probe = tempfile.mkstemp(dir=anc, prefix=".lensforge-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ConfigError(f"{option} {p}: cannot write in {anc} ({e.strerror or e}); choose a writable folder") from None
+    free = shutil.disk_usage(anc).free
+    if free < need_mb * 2**20:
+        raise ConfigError(f"{option} {p}: only {free / 2**20:.2f} MiB free in {anc}, about {need_mb:g} MiB needed; "
+                          "free space or choose another folder")
+    return p
+
+
+class Staged:
+    """A temporary folder beside an output folder; see :func:`staged_dir`."""
+
+    def __init__(self, tmp: Path, out: Path):
+        self.tmp, self.out = tmp, out
+
+    def final(self, p) -> Path:
+        """Where a file written into the temporary folder will end up."""
+        return self.out / Path(p).relative_to(self.tmp)
+
+    def relocate(self, text: str) -> str:
+        """Text (JSON, a summary) with temporary paths replaced by the final ones."""
+        return text.replace(str(self.tmp), str(self.out))
+
+
+@contextmanager
+def staged_dir(out):
+    """Outputs all or nothing: yields a :class:`Staged` whose ``tmp`` folder (beside ``out``,
+    same file system) receives the files; on success they move into ``out`` (created if
+    needed; a missing ``out`` is one rename), on any error or interrupt they are deleted.
+    """
+    import shutil
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp"))
+    try:
+        yield Staged(tmp, out)
+        _fsync_tree(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)
+        if not out.exists():
+            os.rename(tmp, out)
+        else:
+            _merge(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _fsync_tree(root: Path) -> None:
+    for f in root.rglob("*"):
+        if f.is_file():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+
+
+def _merge(src: Path, dst: Path) -> None:
+    """Move src's entries into the existing folder dst (renames; files replace files)."""
+    for f in sorted(src.iterdir()):
+        target = dst / f.name
+        if f.is_dir() and target.is_dir():
+            _merge(f, target)
+        else:
+            if target.is_dir():
+                raise ConfigError(f"-o/--out {dst}: {target} is a folder where a file should go; move it away")
+            os.replace(f, target)

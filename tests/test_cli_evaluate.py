@@ -34,4 +34,4 @@ def test_evaluate_bad_bench_value(tmp_path):
     b.write_text("[sensor]\npupil_radius_mm = -1\n")
     r = run("evaluate", "zernike", "--bench", str(b))
     assert r.returncode == 2
-    assert r.stderr.strip().startswith("error: bench.sensor.pupil_radius_mm")
+    assert r.stderr.strip().startswith("error: bench.toml:bench.sensor.pupil_radius_mm")  # names the file

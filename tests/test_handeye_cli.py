@@ -2,12 +2,14 @@
 
 import json
 import math
-import sys
 
 import numpy as np
 import pytest
 
+from conftest import run_cli_inprocess
+
 from lensforge.calibration.robot import (
+    flange_pose,
     paper_scene,
     random_lens_poses,
     simulate_calibration,
@@ -17,16 +19,7 @@ COV_B = np.diag([1e-3] * 3 + [1e-5] * 3) ** 2
 
 
 def _run(monkeypatch, capsys, *args):
-    from lensforge.cli import main
-
-    monkeypatch.setattr(sys, "argv", ["lensforge", *map(str, args)])
-    code = 0
-    try:
-        main()
-    except SystemExit as e:
-        code = e.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+    return run_cli_inprocess(monkeypatch, capsys, *args)
 
 
 def _poses(tmp_path, **extra):
@@ -74,7 +67,7 @@ def test_cli_bad_files(tmp_path, monkeypatch, capsys):
         "shape": {"units": "mm", "A": [r[:3] for r in A], "B": B},
         "has 12 poses but B has 11": {"units": "mm", "A": A, "B": B[:11]},
         "at least 3": {"units": "mm", "A": A[:2], "B": B[:2]},
-        "units": {"units": "m", "A": A, "B": B},
+        "units": {"units": "inch", "A": A, "B": B},
         "sigma_A": {"units": "mm", "A": A, "B": B, "sigma_A": {"translation_mm": 0.01}},
     }
     for needle, d in cases.items():
@@ -101,3 +94,25 @@ def test_cli_degenerate_motion(tmp_path, monkeypatch, capsys):
     res = json.loads(out)
     assert res["observable"] is False and res["null_directions"]
     assert "warning" in err
+    # the directions the motion lacks get a null 1-sigma, never a tiny finite number
+    std = res["frames"]["Z"]["std"]
+    assert None in std.values() and all(v is None or v > 0 for v in std.values())
+
+
+def test_cli_exactly_degenerate_motion_has_null_sigma(tmp_path, monkeypatch, capsys):
+    """Noise-free pure translations: rotation of Z about the motion-free axes is not
+    determined at all; its 1-sigma is null (infinite), not a tiny pseudo-inverse number."""
+    rng = np.random.default_rng(2)
+    x = np.c_[rng.uniform(-1, 1, (12, 3)), np.zeros((12, 3))]
+    s = paper_scene()
+    A = flange_pose(s, x, check_reach=False)
+    B = np.linalg.inv(s.Z) @ A @ s.X
+    p = _bad(tmp_path, {"units": "mm", "A": A.tolist(), "B": B.tolist(),
+                        "noise": {"robot_sigma_trans_mm": 0.005, "robot_sigma_rot_deg": 0.001,
+                                  "lens_sigma_trans_mm": 0.001, "lens_sigma_rot_deg": 0.001}})
+    code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json", "--allow-degenerate", "-o", tmp_path / "he")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["observable"] is False
+    assert None in res["frames"]["Z"]["std"].values()
+    assert (tmp_path / "he" / "handeye.json").exists() and (tmp_path / "he" / "easy_handeye.yaml").exists()

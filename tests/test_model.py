@@ -46,8 +46,11 @@ def test_defocus_of_spherical_lens_matches_geometry(bench):
     q_um = q * 1e3
     expected = -(a_um**2) / (4 * np.sqrt(3) * q_um)
     assert z[2] == pytest.approx(expected, rel=0.01)  # modes start at Noll 2: index 2 is Z4
-    # only defocus and spherical; the square lenslet grid aliases higher radial orders into cos 4phi (Z14) at ~1e-8 um
-    np.testing.assert_allclose(np.delete(z, [2, 9]), 0.0, atol=1e-6)
+    # only defocus and spherical, plus cos 4phi (Z14): each lenslet averages the slope over its *square*
+    # sub-aperture, which gives a rotationally symmetric wavefront square symmetry at O(pitch^2 d3W/dr3)
+    # (~3e-5 um here, far below the 1e-3 um noise level); with centre sampling it was ~1e-8 um (grid aliasing)
+    np.testing.assert_allclose(np.delete(z, [2, 9, 12]), 0.0, atol=1e-6)
+    assert abs(z[12]) < 1e-4
 
 
 def test_paper_lenses_measurable_and_rank(bench):

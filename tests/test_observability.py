@@ -116,3 +116,20 @@ def test_design_constraint_observable(bench):
     assert not z.ok and [v.constraint for v in z.violations] == ["observable"] and "rz" in z.message()
     assert check_design(bench, lf.paper_lens("extended_polynomial"), c).ok
     assert Constraints.from_dict(c.to_dict()).observable and "observable" not in Constraints().to_dict()
+
+
+def test_cli_evaluate_json_reports_observability(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "lensforge", "evaluate", "spherical", "paper:zernike", "polynomial",
+                        "--json"], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    rows = {row["lens"]: row for row in json.loads(r.stdout)["lenses"]}
+    for name, rz in (("spherical", False), ("paper:zernike", False), ("polynomial", True)):
+        obs = rows[name]["observable"]
+        assert list(obs) == ["tx", "ty", "tz", "rx", "ry", "rz"] and obs["rz"] is rz
+        assert all(obs[d] for d in ("tx", "ty", "tz", "rx", "ry"))
+        assert ("rz" in rows[name]["unobservable"]) is (not rz)
+        assert len(rows[name]["unobservable_directions"]) == (0 if rz else 1)

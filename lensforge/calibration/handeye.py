@@ -40,6 +40,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import CalibrationError
+from .formats import rotation_defects
 from ..optics.pose import (DOF_NAMES, adjoint, invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right,
                            right_jacobian_so3, rotations, skew)
 from ..optics.sensitivity import observability
@@ -72,7 +73,7 @@ METHODS = ("ml", "shah", "li")
 # of rotation (~5e-3).
 DEGENERATE_RTOL = 1e-4
 OBS_LIMITS = (1.0, 0.01)  # (mm, rad)
-_ORTHO_TOL = 1e-6  # |R^T R - I| tolerated in input rotations
+# input rotations: orthonormal to formats.ORTHO_TOL (1e-6) with det +1 (formats.rotation_defects)
 
 
 # ----------------------------------------------------------------------------- validation
@@ -91,9 +92,7 @@ def _as_poses(P, name: str) -> np.ndarray:
     if bad.size:
         raise CalibrationError(f"{name}[{bad[0]}]: last row must be [0, 0, 0, 1]")
     R = P[:, :3, :3]
-    orth = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(R)
-    bad = np.flatnonzero((orth > _ORTHO_TOL) | (det < 0))
+    orth, det, bad = rotation_defects(R)
     if bad.size:
         i = bad[0]
         raise CalibrationError(

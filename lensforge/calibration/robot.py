@@ -1,6 +1,14 @@
-"""Robot pose model for the hand-eye simulation: KUKA KR 10 R1100 sixx (KR AGILUS).
+"""Robot models (from TOML files, a registry) and the hand-eye scene; default KUKA KR 10 R1100 sixx.
 
-Kinematics: the joint chain of ROS-Industrial kuka_experimental,
+Robots are TOML files (package data in ``calibration/robots/``, or any path given to
+``load_robot``): ``kinematics = "urdf"`` with joints {origin_mm, rpy_deg, axis,
+limits_deg} or ``kinematics = "dh"`` with standard Denavit-Hartenberg joints {a_mm,
+d_mm, alpha_deg, offset_deg, limits_deg}, an optional [tool] {origin_mm, rpy_deg},
+reach_mm, repeatability_mm (ISO 9283), repeatability_lever_mm, ik_seeds_deg and a
+[cell] {sensor_xyzabc, grasp_xyzabc} (KUKA mm/deg) giving the nominal Z and X used to
+plan poses and simulate sessions. Each file cites its sources.
+
+KR 10 kinematics: the joint chain of ROS-Industrial kuka_experimental,
 kuka_kr10_support/urdf/kr10r1100sixx_macro.xacro: joint origins (mm) A1 (0, 0, 400),
 A2 (25, 0, 0), A3 (560, 0, 0), A4 (0, 0, 35), A5 (515, 0, 0), A6 (80, 0, 0); axes
 A1 -z, A2 +y, A3 +y, A4 -x, A5 +y, A6 -x; joint limits (deg) A1 +-170, A2 -190..45,
@@ -37,7 +45,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from pathlib import Path
+
+from scipy.spatial.transform import Rotation
+
 from ..errors import ConfigError, PoseRangeError
+from ..fileio import read_toml
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 
 __all__ = [
@@ -46,6 +59,9 @@ __all__ = [
     "Scene",
     "CalibrationData",
     "kr10_r1100_sixx",
+    "load_robot",
+    "ROBOTS",
+    "robot_scene",
     "forward_kinematics",
     "inverse_kinematics",
     "paper_scene",
@@ -65,10 +81,14 @@ PAPER_Z = np.array([[0.0, 0.0, -1.0, 0.0],
 
 @dataclass(frozen=True)
 class RobotModel:
-    """A serial 6R chain in URDF form: joint i = Trans(origin_i) Rot(axis_i, q_i).
+    """A serial 6R chain in URDF form: joint i = Trans(origin_i) Rot_i Rot(axis_i, q_i).
 
     origins_mm: (6, 3); axes: (6, 3) unit vectors; limits_rad: (6, 2) lower/upper;
-    tool: 4x4 fixed transform from the last link to {E}."""
+    tool: 4x4 fixed transform from the last link to {E}; origins_rot: (6, 3, 3) fixed
+    joint-origin rotations (None: identity, the KR 10's); repeatability_mm: ISO 9283
+    RP; repeatability_lever_mm: lever turning it into a rotation sigma (ASSUMPTION);
+    ik_seeds_deg: IK start configurations; cell_Z / cell_X: nominal ^W T_S and ^E T_O
+    (4x4 mm) of the robot's cell (None: the paper's cell); source: the TOML file."""
 
     name: str
     origins_mm: tuple
@@ -76,24 +96,150 @@ class RobotModel:
     limits_rad: tuple
     tool: tuple
     reach_mm: float
+    origins_rot: tuple | None = None
+    repeatability_mm: float = 0.02
+    repeatability_lever_mm: float = 500.0
+    ik_seeds_deg: tuple = ()
+    cell_Z: tuple | None = None
+    cell_X: tuple | None = None
+    source: str = ""
+
+    @property
+    def noise(self) -> "RobotNoise":
+        """Flange pose noise from the repeatability (see RobotNoise.from_repeatability)."""
+        return RobotNoise.from_repeatability(self.repeatability_mm, self.repeatability_lever_mm)
+
+
+ROBOTS_DIR = Path(__file__).with_name("robots")
+ROBOTS = {p.stem: p for p in sorted(ROBOTS_DIR.glob("*.toml"))}  # name -> TOML file (package data)
+
+
+def _rot(rpy_deg) -> np.ndarray:
+    """URDF rpy (roll, pitch, yaw) in deg -> R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return Rotation.from_euler("xyz", rpy_deg, degrees=True).as_matrix()
+
+
+def _vec(d: dict, key: str, n: int, where: str, default=None) -> np.ndarray:
+    v = d.get(key, default)
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if v is None or a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"{where}.{key}: expected {n} finite numbers, got {v!r}")
+    return a
+
+
+def _num(d: dict, key: str, where: str, default=None, positive: bool = True) -> float:
+    v = d.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
+        raise ConfigError(f"{where}.{key}: expected a {'positive ' if positive else ''}number, got {v!r}")
+    return float(v)
+
+
+def _xyzabc(v) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("ZYX", v[3:], degrees=True).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
+    """RobotModel of a parsed robot TOML (see the module docstring); ConfigError naming the field."""
+    known = {"name", "kinematics", "reach_mm", "repeatability_mm", "repeatability_lever_mm", "ik_seeds_deg",
+             "joints", "tool", "cell"}
+    extra = set(d) - known
+    if extra:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(sorted(extra))}; allowed: {', '.join(sorted(known))}")
+    kin = d.get("kinematics")
+    if kin not in ("urdf", "dh"):
+        raise ConfigError(f"{where}.kinematics: expected \"urdf\" or \"dh\", got {kin!r}")
+    joints = d.get("joints")
+    if not isinstance(joints, list) or len(joints) != 6 or not all(isinstance(j, dict) for j in joints):
+        raise ConfigError(f"{where}.joints: expected six [[joints]] tables")
+    origins, rots, axes, limits = [], [], [], []
+    fixed = np.eye(4)  # DH: the fixed transform after the previous joint
+    for i, j in enumerate(joints):
+        w = f"{where}.joints[{i}]"
+        lim = _vec(j, "limits_deg", 2, w)
+        if not lim[0] < lim[1]:
+            raise ConfigError(f"{w}.limits_deg: lower must be below upper, got {lim.tolist()}")
+        limits.append(tuple(np.radians(lim)))
+        if kin == "urdf":
+            origins.append(tuple(_vec(j, "origin_mm", 3, w)))
+            rots.append(_rot(_vec(j, "rpy_deg", 3, w, [0.0, 0.0, 0.0])))
+            ax = _vec(j, "axis", 3, w)
+            if abs(np.linalg.norm(ax) - 1.0) > 1e-9:
+                raise ConfigError(f"{w}.axis: must be a unit vector, got {ax.tolist()}")
+            axes.append(tuple(ax))
+        else:
+            # T_i = Rz(theta_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i): joint i rotates about z after the
+            # previous joint's fixed part; its own fixed part comes after it
+            origins.append(tuple(fixed[:3, 3]))
+            rots.append(fixed[:3, :3].copy())
+            axes.append((0.0, 0.0, 1.0))
+            a, dd = _num(j, "a_mm", w, positive=False), _num(j, "d_mm", w, positive=False)
+            al, off = math.radians(_num(j, "alpha_deg", w, positive=False)), \
+                math.radians(_num(j, "offset_deg", w, 0.0, positive=False))
+            F = np.eye(4)
+            F[:3, :3] = Rotation.from_euler("z", off).as_matrix() @ Rotation.from_euler("x", al).as_matrix()
+            F[:3, 3] = Rotation.from_euler("z", off).as_matrix() @ np.array([a, 0.0, dd])
+            fixed = F
+    tool = np.eye(4)
+    if kin == "dh":
+        tool = fixed.copy()
+    t = d.get("tool", {})
+    if not isinstance(t, dict):
+        raise ConfigError(f"{where}.tool: expected a table")
+    T_tool = np.eye(4)
+    T_tool[:3, :3] = _rot(_vec(t, "rpy_deg", 3, f"{where}.tool", [0.0, 0.0, 0.0]))
+    T_tool[:3, 3] = _vec(t, "origin_mm", 3, f"{where}.tool", [0.0, 0.0, 0.0])
+    tool = tool @ T_tool
+    seeds = d.get("ik_seeds_deg", [[0, -90, 90, 0, 45, 0]])
+    try:
+        seeds = tuple(tuple(float(a) for a in s_) for s_ in seeds)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}.ik_seeds_deg: expected a list of 6-number lists") from None
+    if not seeds or any(len(s_) != 6 for s_ in seeds):
+        raise ConfigError(f"{where}.ik_seeds_deg: expected a list of 6-number lists")
+    cell = d.get("cell", {})
+    if not isinstance(cell, dict):
+        raise ConfigError(f"{where}.cell: expected a table")
+    cZ = _xyzabc(_vec(cell, "sensor_xyzabc", 6, f"{where}.cell")) if "sensor_xyzabc" in cell else None
+    cX = _xyzabc(_vec(cell, "grasp_xyzabc", 6, f"{where}.cell")) if "grasp_xyzabc" in cell else None
+    name = d.get("name")
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{where}.name: expected a non-empty string")
+    return RobotModel(
+        name=name, origins_mm=tuple(origins), axes=tuple(axes), limits_rad=tuple(limits),
+        tool=tuple(map(tuple, tool)), reach_mm=_num(d, "reach_mm", where),
+        origins_rot=None if all(np.allclose(r, np.eye(3)) for r in rots) else tuple(tuple(map(tuple, r)) for r in rots),
+        repeatability_mm=_num(d, "repeatability_mm", where),
+        repeatability_lever_mm=_num(d, "repeatability_lever_mm", where, 500.0),
+        ik_seeds_deg=seeds,
+        cell_Z=None if cZ is None else tuple(map(tuple, cZ)),
+        cell_X=None if cX is None else tuple(map(tuple, cX)),
+        source=where,
+    )
+
+
+def load_robot(spec: str | Path | None = None) -> RobotModel:
+    """A robot by registry name (``ROBOTS``: kr10_r1100_sixx, ur5e) or TOML path; None = KR 10."""
+    spec = "kr10_r1100_sixx" if spec is None else spec
+    key = str(spec)
+    if key in ROBOTS:
+        path = ROBOTS[key]
+    else:
+        path = Path(spec)
+        if not path.exists():
+            raise ConfigError(f"robot: {key!r} is neither a built-in robot ({', '.join(ROBOTS)}) nor an existing "
+                              "TOML file")
+    return robot_from_dict(read_toml(path, "robot file"), where=path.name)
 
 
 def kr10_r1100_sixx() -> RobotModel:
-    """KUKA KR 10 R1100 sixx (ROS-Industrial kuka_experimental URDF values, mm/rad)."""
-    d = math.radians
-    tool = np.eye(4)
-    tool[:3, :3] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]  # Ry(+90 deg)
-    return RobotModel(
-        name="KUKA KR 10 R1100 sixx",
-        origins_mm=((0.0, 0.0, 400.0), (25.0, 0.0, 0.0), (560.0, 0.0, 0.0),
-                    (0.0, 0.0, 35.0), (515.0, 0.0, 0.0), (80.0, 0.0, 0.0)),
-        axes=((0.0, 0.0, -1.0), (0.0, 1.0, 0.0), (0.0, 1.0, 0.0),
-              (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (-1.0, 0.0, 0.0)),
-        limits_rad=((d(-170), d(170)), (d(-190), d(45)), (d(-120), d(156)),
-                    (d(-185), d(185)), (d(-120), d(120)), (d(-350), d(350))),
-        tool=tuple(map(tuple, tool)),
-        reach_mm=1101.0,  # KUKA data sheet: max. reach 1101 mm
-    )
+    """KUKA KR 10 R1100 sixx, read from ``robots/kr10_r1100_sixx.toml`` (mm/rad)."""
+    return load_robot("kr10_r1100_sixx")
 
 
 def _axis_rot(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -107,9 +253,11 @@ def forward_kinematics(q, robot: RobotModel | None = None) -> np.ndarray:
     robot = robot or kr10_r1100_sixx()
     q = np.asarray(q, dtype=float)
     T = np.broadcast_to(np.eye(4), q.shape[:-1] + (4, 4)).copy()
+    rots = robot.origins_rot
     for i in range(6):
         J = np.zeros(q.shape[:-1] + (4, 4))
-        J[..., :3, :3] = _axis_rot(np.asarray(robot.axes[i]), q[..., i])
+        Rq = _axis_rot(np.asarray(robot.axes[i]), q[..., i])
+        J[..., :3, :3] = Rq if rots is None else np.asarray(rots[i]) @ Rq
         J[..., :3, 3] = robot.origins_mm[i]
         J[..., 3, 3] = 1.0
         T = T @ J
@@ -122,26 +270,23 @@ def _ik_residual(q, T_goal, robot):
     return np.concatenate([e[:3], 1000.0 * e[3:]])  # rad weighted as mm at 1 m
 
 
-_SEEDS_DEG = ((0, -90, 90, 0, 0, 0), (-45, -90, 90, 0, 45, 0), (-90, -90, 90, 0, 45, 0),
-              (-60, -60, 60, 0, 60, 0), (45, -90, 90, 0, 45, 0), (-90, -45, 45, 0, 90, 0))
-
-
 def inverse_kinematics(T, robot: RobotModel | None = None, q0=None, tol_mm: float = 1e-6) -> np.ndarray:
     """Joint angles q (6,) rad that reach flange pose T = ^W T_E (4x4, mm) within the
-    joint limits; numerical (bounded least squares) from q0 and built-in seeds.
+    joint limits; numerical (bounded least squares) from q0 and the robot's seeds.
     Raises PoseRangeError when no seed converges (unreachable or outside the limits)."""
     robot = robot or kr10_r1100_sixx()
     T = np.asarray(T, dtype=float)
     lim = np.asarray(robot.limits_rad)
-    wrist = T[:3, 3] - T[:3, :3] @ np.array([0.0, 0.0, robot.origins_mm[5][0]])
-    shoulder_dist = np.linalg.norm(wrist - np.array([0.0, 0.0, robot.origins_mm[0][2]]))
-    arm = robot.origins_mm[2][0] + math.hypot(robot.origins_mm[3][2], robot.origins_mm[4][0])
-    if shoulder_dist > arm + abs(robot.origins_mm[1][0]) + 1e-9:
+    # necessary condition (triangle inequality): the flange is no farther from the first joint's
+    # origin than the sum of the link offsets and the tool
+    links = sum(np.linalg.norm(o) for o in robot.origins_mm[1:]) + np.linalg.norm(np.asarray(robot.tool)[:3, 3])
+    dist = np.linalg.norm(T[:3, 3] - np.asarray(robot.origins_mm[0]))
+    if dist > links + 1e-9:
         raise PoseRangeError(
-            f"flange pose: wrist centre {shoulder_dist:.0f} mm from the shoulder exceeds the arm's "
-            f"{arm + robot.origins_mm[1][0]:.0f} mm; move the scene (Z) or the grasp (X) closer to the robot"
+            f"flange pose: {dist:.0f} mm from the first joint exceeds the {robot.name}'s {links:.0f} mm of links; "
+            "move the scene (Z) or the grasp (X) closer to the robot"
         )
-    seeds = ([np.asarray(q0, dtype=float)] if q0 is not None else []) + [np.radians(s) for s in _SEEDS_DEG]
+    seeds = ([np.asarray(q0, dtype=float)] if q0 is not None else []) + [np.radians(s) for s in robot.ik_seeds_deg]
     best = None
     for s in seeds:
         s = np.clip(s, lim[:, 0] + 1e-9, lim[:, 1] - 1e-9)
@@ -153,7 +298,7 @@ def inverse_kinematics(T, robot: RobotModel | None = None, q0=None, tol_mm: floa
         if err < tol_mm:
             return sol.x
     raise PoseRangeError(
-        f"flange pose: not reachable within the KR 10 joint limits (best IK error {best[0]:.3g} mm); "
+        f"flange pose: not reachable within the {robot.name} joint limits (best IK error {best[0]:.3g} mm); "
         "choose lens poses closer to nominal or another grasp X"
     )
 
@@ -211,6 +356,18 @@ class Scene:
         T = np.eye(4)
         T[2, 3] = -self.distance_mm
         return T
+
+
+def robot_scene(robot: RobotModel | None = None, distance_mm: float = 20.0) -> Scene:
+    """The robot's cell (its TOML [cell]: nominal Z and X; else the paper's Z and the
+    side grasp), its repeatability noise and the bench's nominal lens distance."""
+    robot = robot or kr10_r1100_sixx()
+    kw = {}
+    if robot.cell_Z is not None:
+        kw["Z"] = np.array(robot.cell_Z)
+    if robot.cell_X is not None:
+        kw["X"] = np.array(robot.cell_X)
+    return Scene(distance_mm=float(distance_mm), robot=robot, noise=robot.noise, **kw)
 
 
 def paper_scene(distance_mm: float = 20.0, noise: RobotNoise | None = None) -> Scene:

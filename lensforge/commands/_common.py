@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import typer
 
+from ..errors import ConfigError
 from ..fileio import dumps_json
 from ..optics.bench import Bench, load_bench
 from ..optics.lens import ResolvedLens
@@ -23,3 +24,15 @@ def load_bench_arg(path: str | None, resolved: ResolvedLens | None = None) -> Be
     """The bench from --bench PATH, else the one stored in the design file, else the default."""
     override = load_bench(path) if path else None
     return resolved.bench_or(override) if resolved is not None else (override or Bench.default())
+
+
+# Trials a command runs (lenses, estimates, calibrations): a million already takes days
+# on a workstation; more would only exhaust memory before the first result.
+MAX_TRIALS = 1_000_000
+
+
+def check_seed(seed: int, option: str = "--seed") -> int:
+    """A seed numpy's SeedSequence accepts: an integer 0 .. 2**63 - 1."""
+    if not 0 <= seed < 2**63:
+        raise ConfigError(f"{option}: must be an integer from 0 to 2**63 - 1, got {seed}")
+    return seed

@@ -17,6 +17,8 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
+from ..fileio import check_output, staged_dir
+from ._common import check_seed
 from .evaluate import evaluate_lenses, metrics_table
 
 
@@ -34,48 +36,52 @@ def demo(
     from ..verification.study import verify
 
     console = Console(stderr=True, width=160)
-    out.mkdir(parents=True, exist_ok=True)
-    bench = Bench.default()
-    t_all = time.perf_counter()
+    check_seed(seed)
+    check_output(out, folder=True, need_mb=50)
+    # everything is made in a temporary folder and moved into OUT at the end: all or nothing
+    # (a rerun replaces the previous demo's files, its study store included)
+    with staged_dir(out) as st:
+        work = st.tmp
+        bench = Bench.default()
+        t_all = time.perf_counter()
 
-    console.rule("1. The paper's lenses on the default bench")
-    rows = evaluate_lenses(["spherical", "polynomial", "extended_polynomial", "zernike"])
-    console.print(metrics_table(rows, title="The paper's four lenses (scaled, noise-whitened S)"))
+        console.rule("1. The paper's lenses on the default bench")
+        rows = evaluate_lenses(["spherical", "polynomial", "extended_polynomial", "zernike"])
+        console.print(metrics_table(rows, title="The paper's four lenses (scaled, noise-whitened S)"))
 
-    console.rule("2. Design a Zernike freeform lens (CMA-ES, A-optimal criterion, Noll 1..8 + base curvatures)")
-    t0 = time.perf_counter()
-    # the library's defaults (CMA-ES, criterion A, free set 'full'), as `lensforge design --model zernike`
-    design = optimize_design(bench, model="zernike", method="cmaes", seed=seed, criterion="A", free="full",
-                             max_evals=150 if quick else DEFAULT_MAX_EVALS["cmaes"])
-    design_path = save_design(design, out / "zernike.json")
-    console.print(f"designed in {time.perf_counter() - t0:.1f} s -> {design_path}")
-    rows.append({"lens": f"lensforge zernike ({design_path.name})", "description": "",
-                 **design.compute_metrics(bench).to_dict()})
-    console.print(metrics_table(rows, title="Table 1 analogue: paper lenses vs the lensforge design"))
+        console.rule("2. Design a Zernike freeform lens (CMA-ES, A-optimal criterion, Noll 1..8 + base curvatures)")
+        t0 = time.perf_counter()
+        design = optimize_design(bench, model="zernike", method="cmaes", seed=seed, criterion="A", free="full",
+                                 max_evals=150 if quick else DEFAULT_MAX_EVALS["cmaes"])
+        design_path = save_design(design, work / "zernike.json")
+        console.print(f"designed in {time.perf_counter() - t0:.1f} s -> {st.final(design_path)}")
+        rows.append({"lens": f"lensforge zernike ({design_path.name})", "description": "",
+                     **design.compute_metrics(bench).to_dict()})
+        console.print(metrics_table(rows, title="Table 1 analogue: paper lenses vs the lensforge design"))
 
-    console.rule("3. Export for the Form 2 (STL + STEP + printability report)")
-    from ..manufacturing.report import export_lens  # imports OCP (~0.8 s): only exports pay it
+        console.rule("3. Export for the Form 2 (STL + STEP + printability report)")
+        from ..manufacturing.report import export_lens  # imports OCP (~0.8 s): only exports pay it
 
-    rep = export_lens(design.lens, out, "zernike", stl=True, step=True, run_slicer=not quick)
-    console.print(rep.summary())
+        rep = export_lens(design.lens, work, "zernike", stl=True, step=True, run_slicer=not quick)
+        console.print(st.relocate(rep.summary()))
 
-    console.rule("4. As-built verification: calibration error of printed lenses")
-    n = 4 if quick else 20
-    store = out / "demo-study.sqlite"
-    for stale in (store, store.with_name(store.name + "-wal"), store.with_name(store.name + "-shm")):
-        stale.unlink(missing_ok=True)  # the demo's own store: start a fresh study each run
-    res = verify(design, load_tolerances(DEFAULT_TOLERANCES_FILE), n_lenses=n, seed=seed, bench=bench,
-                 n_poses=12 if quick else 24, workers=0, store=store)
-    s = res.summary
+        console.rule("4. As-built verification: calibration error of printed lenses")
+        n = 4 if quick else 20
+        store = work / "demo-study.sqlite"
+        res = verify(design, load_tolerances(DEFAULT_TOLERANCES_FILE), n_lenses=n, seed=seed, bench=bench,
+                     n_poses=12 if quick else 24, workers=0, store=store)
+        s = res.summary
 
-    def fmt(d, unit):
-        return ", ".join(f"{k} {v:.4g} {unit}" if v is not None else f"{k} n/a" for k, v in d.items())
+        def fmt(d, unit):
+            return ", ".join(f"{k} {v:.4g} {unit}" if v is not None else f"{k} n/a" for k, v in d.items())
 
-    console.print(f"{n} as-built lenses x {res.config['config']['n_poses']} calibration poses, "
-                  f"failure rate {s['failure_rate']:.0%}")
-    console.print(f"  sensor pose Z translation error: {fmt(s['translation_mm'], 'mm')}")
-    console.print(f"  sensor pose Z rotation error:    {fmt(s['rotation_deg'], 'deg')}")
-    console.print(f"  {format_counts(s)}")
-    console.print(f"  target {s['target']['translation_mm']} mm / {s['target']['rotation_deg']} deg at the "
-                  f"{s['percentile']:.0f}th percentile met: {'yes' if s['meets_target'] else 'no'}")
+        console.print(f"{n} as-built lenses x {res.config['config']['n_poses']} calibration poses, "
+                      f"failure rate {s['failure_rate']:.0%}")
+        console.print(f"  sensor pose Z translation error: {fmt(s['translation_mm'], 'mm')}")
+        console.print(f"  sensor pose Z rotation error:    {fmt(s['rotation_deg'], 'deg')}")
+        console.print(f"  {format_counts(s)}")
+        console.print(f"  target {s['target']['translation_mm']} mm / {s['target']['rotation_deg']} deg at the "
+                      f"{s['percentile']:.0f}th percentile met: {'yes' if s['meets_target'] else 'no'}")
+        for stale in ("demo-study.sqlite-wal", "demo-study.sqlite-shm"):  # a killed earlier demo's journal
+            (out / stale).unlink(missing_ok=True)                          # must not meet the new store
     console.print(f"done in {time.perf_counter() - t_all:.0f} s; files in {out}/")

@@ -10,7 +10,8 @@ import typer
 from rich.console import Console
 
 from ..errors import ConfigError
-from ._common import emit_json, info, load_bench_arg
+from ..fileio import check_output, staged_dir
+from ._common import check_seed, emit_json, info, load_bench_arg
 
 
 def _weights(text: str) -> tuple[float, float]:
@@ -68,6 +69,9 @@ def design(
 
         spec = RobustSpec(load_tolerances(robust), n_samples=robust_samples, seed=robust_seed,
                           statistic=robust_statistic)
+    check_seed(seed)
+    check_seed(robust_seed, "--robust-seed")
+    check_output(out, folder=False, option="-o/--out")
     cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
                        range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable)
     d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
@@ -103,10 +107,11 @@ def plot(
     from ..plots import design_plots
 
     r = resolve_lens(design_file)
-    if "model" in r.data:  # a design file: its plots show the design's parameters too
-        paths = design_plots(load_design(design_file), out, stem=Path(design_file).stem)
-    else:
-        paths = design_plots(r.lens, out, stem=r.label.replace(" ", "_"))
+    obj, stem = ((load_design(design_file), Path(design_file).stem) if "model" in r.data  # a design file:
+                 else (r.lens, r.label.replace(" ", "_")))  # its plots show the design's parameters too
+    check_output(out, folder=True, need_mb=5)
+    with staged_dir(out) as st:  # the three PNGs appear together or not at all
+        paths = [st.final(p) for p in design_plots(obj, st.tmp, stem=stem)]
     if json_out:
         emit_json({"schema_version": 1, "files": [str(p) for p in paths]})
     else:

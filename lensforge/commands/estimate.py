@@ -10,15 +10,15 @@ from typing import List, Optional
 import typer
 
 from ..errors import ConfigError
-from ..fileio import write_atomic
+from ..fileio import check_output, staged_dir, write_atomic
 from ..progress import progress_bar
-from ._common import emit_json, info, load_bench_arg
+from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg
 
 
 def estimate_study(
     lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
     trials: int = typer.Option(100, "--trials", help="estimates per lens"),
-    method: str = typer.Option("lm", "--method", help="lm (least squares, default) or ukf (the paper's baseline)"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS) + " (lm: least squares; ukf: the paper's baseline)"),
     ukf_repeats: int = typer.Option(12, "--ukf-repeats", help="ukf: updates on the same measurement (paper: 12)"),
     seed: int = typer.Option(0, "--seed", help="random seed (SeedSequence; same trials for every lens)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
@@ -38,17 +38,22 @@ def estimate_study(
         raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if trials < 1 or ukf_repeats < 1:
         raise ConfigError(f"--trials and --ukf-repeats: must be >= 1, got {trials} and {ukf_repeats}")
+    check_seed(seed)
+    if trials > MAX_TRIALS:
+        raise ConfigError(f"--trials: {trials} is over the limit of {MAX_TRIALS} estimates per lens")
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
-    loaded = [resolve_lens(arg) for arg in lenses]  # every argument checked before the long work
+    loaded = [resolve_lens(arg) for arg in lenses]  # every input validated before any work
+    benches = [load_bench_arg(bench, r) for r in loaded]
+    check_output(out, folder=True, need_mb=5)
     results = []
     with progress_bar(trials * len(lenses), "estimates", not (no_progress or json_out)) as bar:
-        for r in loaded:
+        for r, b in zip(loaded, benches):
             bar.describe(f"{r.label}: {method} estimates")
-            results.append(study_lens(load_bench_arg(bench, r), r.lens, r.label, trials, method, seed,
-                                      tick=bar.advance, **opts))
+            results.append(study_lens(b, r.lens, r.label, trials, method, seed, tick=bar.advance, **opts))
     meta = {"method": method, "trials": trials, "seed": seed,
             **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
-    paths = save_study(results, out, **meta)
+    with staged_dir(out) as st:  # JSON, CSV and PNG together or not at all
+        paths = {k: st.final(v) for k, v in save_study(results, st.tmp, **meta).items()}
     if json_out:
         emit_json({**study_to_dict(results, **meta), "files": {k: str(v) for k, v in paths.items()}})
     else:
@@ -79,9 +84,13 @@ def scenario(
         raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if runs < 1:
         raise ConfigError(f"--runs: must be >= 1, got {runs}")
+    check_seed(seed)
+    if runs > MAX_TRIALS:
+        raise ConfigError(f"--runs: {runs} is over the limit of {MAX_TRIALS}")
     r = resolve_lens(lens)
     lens_obj = r.lens
     b = load_bench_arg(bench, r)
+    check_output(Path(out) / "scenario.json", folder=False)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)
     with progress_bar(runs * len(designs), f"calibrations ({', '.join(designs)} poses)",

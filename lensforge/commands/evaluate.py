@@ -12,19 +12,36 @@ from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns
 from ._common import emit_json, load_bench_arg
 
 
+_NO_METRICS = {"rank": None, "kappa": None, "sigma_min": None, "J": None, "unobservable": None,
+               "crlb_std": {k: None for k in ("tx_um", "ty_um", "tz_um", "rx_urad", "ry_urad", "rz_urad")}}
+
+
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
-    """Metrics rows (JSON-ready) for each lens argument (paper name or design file)."""
+    """Metrics rows (JSON-ready) for each lens argument (paper name or design file).
+
+    Each row carries ``sensor_range`` at the nominal pose (ok, max_slope_mrad, lenslets_out, ...);
+    a lens out of the sensor's range gets null metrics (the sensor cannot measure it).
+    """
     from ..optics.lens import resolve_lens
     from ..optics.sensitivity import metrics
+    from ..optics.shack_hartmann import ForwardModel
 
     rows = []
     for name in names:
         r = resolve_lens(name)
         lens = r.lens
         bench = load_bench_arg(bench_path, r)
-        m = metrics(bench, lens)
-        rows.append({"lens": name, "label": r.label, "description": lens.name, **m.to_dict()})
+        sr = ForwardModel(bench, lens).sensor_range()  # nominal pose; metrics need it in range
+        m = metrics(bench, lens) if sr.ok else None
+        rows.append({"lens": name, "label": r.label, "description": lens.name,
+                     **(m.to_dict() if m else _NO_METRICS), "sensor_range": sr.to_dict()})
     return rows
+
+
+def _range_text(sr: dict | None) -> str:
+    if sr is None:
+        return "-"
+    return ("ok" if sr["ok"] else f"OUT ({sr['lenslets_out']} lenslets)") + f", max {sr['max_slope_mrad']:.3g} mrad"
 
 
 def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, noise-whitened S)"):
@@ -34,11 +51,11 @@ def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, n
         return "inf" if v is None else format(v, spec)
 
     t = Table(title=title, caption=UNOBSERVABLE_NOTE)
-    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + crlb_columns():
+    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + crlb_columns() + ["sensor range"]:
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
-        t.add_row(r.get("label", r["lens"]), str(r["rank"]), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
-                  *crlb_cells(r["crlb_std"], unobservable=r.get("unobservable", ())))
+        t.add_row(r.get("label", r["lens"]), fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
+                  *crlb_cells(r["crlb_std"], unobservable=r.get("unobservable") or ()), _range_text(r.get("sensor_range")))
     return t
 
 

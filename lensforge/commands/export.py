@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -9,8 +10,18 @@ import typer
 
 from ..errors import ConfigError
 from ..manufacturing.features import FeatureSpec
+from ..fileio import check_output, dumps_json, staged_dir, write_atomic
 from ..optics.lens import resolve_lens
 from ._common import emit_json, info
+
+MAX_TRIANGLES = 1e7  # ~2 GB in trimesh and OCP together; far finer than any printer resolves
+
+
+def mesh_triangle_estimate(radius_mm: float, chord_tol_mm: float) -> float:
+    """Triangles of a lens mesh (both faces) at a chord tolerance: a rim polygon of
+    n = pi / acos(1 - tol / R) points and about n / (2 pi) rings of up to n points."""
+    n_rim = math.pi / math.acos(max(-1.0, 1.0 - min(chord_tol_mm / radius_mm, 2.0)))
+    return 2.0 * n_rim * max(8.0, n_rim / (2 * math.pi))
 
 
 def export_cmd(
@@ -38,6 +49,8 @@ def export_cmd(
     if fiducial_kind not in ("flat", "notch"):
         raise ConfigError(f"--fiducial-kind: must be 'flat' or 'notch', got {fiducial_kind!r}")
     lens = resolve_lens(design).lens
+    if name is not None and (not name or "/" in name or name.startswith(".") or "\0" in name):
+        raise ConfigError(f"--name: {name!r} is not a usable file stem; pass a plain name such as lens1")
     if edge_diameter is not None:
         if not math.isfinite(edge_diameter) or edge_diameter < lens.aperture:
             raise ConfigError(f"--edge-diameter: must be >= the clear aperture {lens.aperture} mm, "
@@ -47,12 +60,23 @@ def export_cmd(
         stl = step = True
     stem = name or Path(design).stem.replace(" ", "_")
     spec = FeatureSpec(fiducial=fiducial_kind if fiducial else None, tab=tab)
+    n_tri = mesh_triangle_estimate(lens.edge_diameter / 2, chord_tol)
+    if n_tri > MAX_TRIANGLES:
+        raise ConfigError(f"--chord-tol: {chord_tol:g} mm on a {lens.edge_diameter:g} mm lens needs about "
+                          f"{n_tri:.2g} triangles, over the limit of {MAX_TRIANGLES:.0e}; use a larger tolerance "
+                          "(the Form 2 prints 25 um layers; 0.001 mm is ample)")
+    check_output(out, folder=True, need_mb=20 + 200 * n_tri / 1e6)
     from ..manufacturing.report import export_lens  # imports OCP (~0.8 s): only exports pay it
 
-    rep = export_lens(lens, out, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
-                      chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf)
-    info(rep.summary())
+    with staged_dir(out) as st:  # STL, STEP, 3MF and report appear together or not at all
+        rep = export_lens(lens, st.tmp, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
+                          chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf, write_report=False)
+        report = rep.to_dict()
+        report["files"]["report"] = str(st.tmp / f"{stem}.report.json")
+        text = st.relocate(dumps_json(report))
+        write_atomic(st.tmp / f"{stem}.report.json", text + "\n")
+    info(st.relocate(rep.summary()))
     if json_out:
-        emit_json(rep.to_dict())
+        emit_json(json.loads(text))
     if not rep.ok:
         raise typer.Exit(1)

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import typer
 
-from ..fileio import dumps_json, write_atomic
+from ..errors import ConfigError
+from ..fileio import check_output, dumps_json, staged_dir, write_atomic
 from ..optics.bench import load_bench
-from ._common import emit_json, info
+from ._common import MAX_TRIALS, check_seed, emit_json, info
 
 
 def _tolerances(path):
@@ -26,6 +27,16 @@ def _fmt(v, unit, digits=3):
 
 def _write_json(path: Path, obj) -> None:
     write_atomic(path, dumps_json(obj))
+
+
+def _check_sizes(seed: int, lenses: int, workers: int | None) -> None:
+    check_seed(seed)
+    if lenses < 1:
+        raise ConfigError(f"--lenses/-n: must be >= 1, got {lenses}")
+    if lenses > MAX_TRIALS:
+        raise ConfigError(f"--lenses/-n: {lenses} is over the limit of {MAX_TRIALS} as-built lenses per study")
+    if workers is not None and not 0 <= workers <= 256:
+        raise ConfigError(f"--workers: must be from 0 (in this process) to 256, got {workers}")
 
 
 def study_cmd(
@@ -53,17 +64,19 @@ def study_cmd(
     from ..verification.study_plots import plot_error_histograms
 
     tol = _tolerances(tolerances)
+    _check_sizes(seed, lenses, workers)
     cfg = StudyConfig(n_poses=poses, self_calibrate=self_calibrate, target_mm=target_mm, target_deg=target_deg)
     b = load_bench(bench) if bench else None
-    out.mkdir(parents=True, exist_ok=True)
+    check_output(out, folder=True, need_mb=5 + lenses * 2e-3)
     res = verify(design, tol, lenses, seed, b, config=cfg, workers=workers, scheduler=scheduler,
                  store=out / "store.sqlite", resume=resume, progress=not (no_progress or json_out))
     d = res.to_dict()
     d["design"] = str(design)
     d["tolerances"] = res.config["tolerances"]
-    _write_json(out / "summary.json", d)
-    plot_error_histograms(res.rot_err_deg, res.trans_err_mm, out / "errors.png", target_deg, target_mm,
-                          title=f"{design}: Z error over {res.n_lenses} as-built lenses")
+    with staged_dir(out) as st:  # summary and plot together or not at all (the store is already durable)
+        _write_json(st.tmp / "summary.json", d)
+        plot_error_histograms(res.rot_err_deg, res.trans_err_mm, st.tmp / "errors.png", target_deg, target_mm,
+                              title=f"{design}: Z error over {res.n_lenses} as-built lenses")
     s = res.summary
     info(f"{s['n_ok']} of {s['n_lenses']} calibrations succeeded ({res.stats.n_resumed} resumed, "
          f"{res.stats.wall_s:.1f} s, {res.stats.mode})")
@@ -117,9 +130,10 @@ def budget_cmd(
     from ..verification.study_plots import plot_budget, plot_sensitivity
 
     tol = _tolerances(tolerances)
+    _check_sizes(seed, lenses, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg)
     b = load_bench(bench) if bench else None
-    out.mkdir(parents=True, exist_ok=True)
+    check_output(out, folder=True, need_mb=10)
     with dask_client(workers, scheduler) as cl:
         kw = dict(config=cfg, client=cl, workers=0, progress=not (no_progress or json_out))
         bud = tolerance_budget(design, tol, target_mm=target_mm, target_deg=target_deg, n_lenses=lenses,
@@ -129,16 +143,17 @@ def budget_cmd(
                                     progress=kw["progress"])
     d = {"schema_version": 1, "design": str(design), **bud.to_dict(),
          "sensitivity": [r.to_dict() for r in sens], "tolerances": tol.to_dict()}
-    _write_json(out / "budget.json", d)
-    plot_sensitivity([r.to_dict() for r in sens], out / "sensitivity.png",
-                     title=f"{design}: p95 Z error per tolerance ({lenses} lenses)")
     rows = []
     for r in bud.rows:
         rd = r.to_dict()
         rd["max_value_label"] = ("n/a" if r.max_value is None else f"<= {r.max_value:.3g} {r.unit}")
         rows.append(rd)
-    plot_budget(rows, out / "budget.png", title=f"{design}: tolerance budget "
-                f"({bud.target_mm:.3g} mm, {bud.target_deg:.3g} deg at p{bud.percentile:g})")
+    with staged_dir(out) as st:  # budget.json and both plots together or not at all
+        _write_json(st.tmp / "budget.json", d)
+        plot_sensitivity([r.to_dict() for r in sens], st.tmp / "sensitivity.png",
+                         title=f"{design}: p95 Z error per tolerance ({lenses} lenses)")
+        plot_budget(rows, st.tmp / "budget.png", title=f"{design}: tolerance budget "
+                    f"({bud.target_mm:.3g} mm, {bud.target_deg:.3g} deg at p{bud.percentile:g})")
     info(f"budget for {design}: target {bud.target_mm:.3g} mm and {bud.target_deg:.3g} deg at "
          f"p{bud.percentile:g}; noise-only ratio {bud.noise_ratio if bud.noise_ratio is None else round(bud.noise_ratio, 3)}")
     info(f"  {'component':<10} {'given':>12} {'max scale':>10} {'max value':>12}  unit / status")

@@ -3,7 +3,9 @@
 Each entry (a paper lens, a design file, a lens) is evaluated afresh on the same
 bench, so the rows compare like with like: rank, kappa, sigma_min, J (on the scaled,
 whitened S), the D and A criteria, the CRLB std per DOF (um, urad), whether the
-design constraints hold, and for design files the optimiser's cost (evaluations,
+sensor can measure the lens at the nominal pose (``sensor_range`` under the bench's
+spot-assignment model, and ``sensor_range_fixed`` with fixed lenslet windows), whether
+the design constraints hold, and for design files the optimiser's cost (evaluations,
 seconds).
 """
 
@@ -14,11 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns, fmt_bound
-from ..errors import ConfigError, LensforgeError
+from ..errors import LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
+from ..optics.shack_hartmann import ForwardModel
 from .constraints import Constraints, check_design
 from .design_file import Design, load_design, metrics_dict
 
@@ -69,6 +72,12 @@ def compare_rows(entries, bench: Bench | None = None, constraints: Constraints |
             row["unobservable"] = list(DOF_NAMES)
             row["error"] = str(err)
         try:
+            row["sensor_range"] = ForwardModel(bench, e.lens).sensor_range().to_dict()
+            fixed = bench.replace(sensor={"spot_assignment": "fixed"})
+            row["sensor_range_fixed"] = ForwardModel(fixed, e.lens).sensor_range().to_dict()
+        except LensforgeError:
+            row["sensor_range"] = row["sensor_range_fixed"] = None
+        try:
             f = check_design(bench, e.lens, cons)
             row["feasible"] = f.ok
             row["violations"] = [v.constraint for v in f.violations]
@@ -95,6 +104,18 @@ def _fmt(v, spec=".4g"):
     return format(v, spec)
 
 
+def _measurable(r: dict) -> str:
+    """'tracking yes / fixed no (16 out)': can the sensor measure the lens at the nominal pose."""
+    parts = []
+    for key in ("sensor_range", "sensor_range_fixed"):
+        sr = r.get(key)
+        if sr is None:
+            parts.append("-")
+            continue
+        parts.append(f"{sr['model']} " + ("yes" if sr["ok"] else f"no ({sr['lenslets_out']} out)"))
+    return " / ".join(dict.fromkeys(parts))
+
+
 def format_table(rows: list[dict]):
     """A rich Table of the rows (print it with a stderr Console)."""
     from rich.table import Table
@@ -102,7 +123,7 @@ def format_table(rows: list[dict]):
     t = Table(title="Lens comparison on one bench (metrics of the scaled, whitened S; CRLB 1-sigma)",
               caption=UNOBSERVABLE_NOTE)
     cols = (["lens", "rank", "kappa", "sigma_min", "J", "D", "A"] + crlb_columns("")
-            + ["feasible", "evals", "time (s)"])
+            + ["max slope (mrad)", "measurable", "feasible", "evals", "time (s)"])
     for c in cols:
         t.add_column(c, justify="left" if c == "lens" else "right")
     for r in rows:
@@ -111,6 +132,7 @@ def format_table(rows: list[dict]):
             r["label"], _fmt(r["rank"], "d"), _fmt(r["kappa"]), _fmt(r["sigma_min"]), _fmt(r["J"]),
             fmt_bound(r["D"], lost, ".4g"), fmt_bound(r["A"], lost, ".4g"),
             *crlb_cells(r.get("crlb_std"), unobservable=r.get("unobservable", ())),
+            _fmt((r.get("sensor_range") or {}).get("max_slope_mrad"), ".3g"), _measurable(r),
             "yes" if r["feasible"] else "no: " + ",".join(r["violations"]),
             _fmt(r["n_evals"], "d"), _fmt(r["wall_time_s"], ".1f"),
         )

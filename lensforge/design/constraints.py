@@ -10,6 +10,9 @@
   lens during estimation and calibration. The batch is one ``ForwardModel.evaluate``
   call: 12 axis poses (each DOF at +-range) and the 16 corners of
   (tx, ty, rx, ry) at +-range -- lateral beam walk comes from those four DOF.
+* sensor range: over the same poses every pupil lenslet's spot stays assignable by
+  the sensor (``sensor.spot_assignment``, see ``optics/sensor_range.py``) with a margin:
+  the largest fraction of the assignment limit used is at most 1 - ``range_margin``.
 * observability (opt-in, ``observable=True``): every pose DOF observable at the
   nominal pose by DESIGN.md's statistical rule (``optics.sensitivity.observability``:
   not numerically null and predicted 1-sigma within the bench's pose scale).
@@ -47,7 +50,9 @@ class Constraints:
     (ASSUMPTION: 50 deg -- steeper surfaces are hard to hand-polish and to measure
     with a profilometer, and their SLA staircase grows as tan(slope); the paper's
     polynomial lens, printed and polished there, reaches 46.8 deg at its back rim).
-    90 disables the check. observable: require every pose DOF observable at the
+    90 disables the check. range_margin: fraction of the sensor's spot-assignment limit
+    kept free over the working range (ASSUMPTION 0.2: room for as-built deviations and
+    poses between the checked ones). observable: require every pose DOF observable at the
     nominal pose (the statistical rule; off by default, the criteria already
     penalise lost rank).
     """
@@ -58,11 +63,15 @@ class Constraints:
     range_rad: float = math.radians(1.0)
     tir: bool = True
     max_slope_deg: float = 50.0
+    range_margin: float = 0.2
     observable: bool = False
 
     def __post_init__(self):
         if not (isinstance(self.max_slope_deg, (int, float)) and 0 < self.max_slope_deg <= 90):
             raise ConfigError(f"constraints.max_slope_deg: must be in (0, 90] deg, got {self.max_slope_deg!r}")
+        if isinstance(self.range_margin, bool) or not isinstance(self.range_margin, (int, float)) \
+                or not 0 <= self.range_margin < 1:
+            raise ConfigError(f"constraints.range_margin: must be in [0, 1), got {self.range_margin!r}")
         for f in ("min_center_mm", "min_edge_mm", "range_mm", "range_rad"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -85,14 +94,15 @@ class Constraints:
 
     def to_dict(self) -> dict:
         d = {"min_center_mm": self.min_center_mm, "min_edge_mm": self.min_edge_mm,
-             "range_mm": self.range_mm, "range_rad": self.range_rad, "tir": self.tir}
+             "range_mm": self.range_mm, "range_rad": self.range_rad, "tir": self.tir,
+             "range_margin": self.range_margin}
         return {**d, "observable": True} if self.observable else d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Constraints":
         if not isinstance(d, dict):
             raise ConfigError("constraints: expected an object")
-        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir", "observable"}
+        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir", "range_margin", "observable"}
         unknown = set(d) - allowed
         if unknown:
             raise ConfigError(f"constraints: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
@@ -215,14 +225,15 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
     P = working_poses(c) if poses is None else poses
     res = model.evaluate(P[:1], check_range=False)
     uv0 = res.uv[0] if res.valid[0] else None
-    status, irr, valid = res.status, res.irradiance, res.valid
+    status, irr, use = res.status, res.irradiance, res.range_use
     if len(P) > 1:
         # the whole working batch in one call, warm-started from the nominal aim
         warm = None if uv0 is None else np.broadcast_to(uv0, (len(P) - 1,) + uv0.shape)
         res2 = model.evaluate(P[1:], uv0=warm, check_range=False)
         status = np.concatenate([status, res2.status])
         irr = np.concatenate([irr, res2.irradiance])
-        valid = np.concatenate([valid, res2.valid])
+        use = np.concatenate([use, res2.range_use])
+    valid = np.all(status == OK, axis=1) & np.all(irr >= res.threshold, axis=1)
     if c.tir and np.any(status == TIR):
         n_tir = int(np.sum(np.any(status == TIR, axis=1)))
         vs.append(Violation("tir", n_tir, 0, f"total internal reflection of pupil rays at {n_tir} of {len(P)} "
@@ -247,6 +258,18 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                             f"at {where}: {why}; reduce surface power/tilt or shrink the working range "
                             f"(constraints.range_mm/range_rad; CLI --range-mm/--range-deg)"))
         pen += 1.0 + not_ok + short
+    elif bench.sensor.spot_assignment != "none":
+        worst_use = np.max(use, axis=1)
+        allowed = 1.0 - c.range_margin
+        if np.any(worst_use > allowed):
+            k = int(np.argmax(worst_use))
+            where = "the nominal pose" if k == 0 else f"working-range pose {np.round(P[k], 4).tolist()} (mm, rad)"
+            vs.append(Violation("sensor_range", float(worst_use[k]), allowed,
+                                f"spots use up to {worst_use[k]:.3g} x the sensor's '{bench.sensor.spot_assignment}' "
+                                f"spot-assignment limit (allowed {allowed:.3g} with constraints.range_margin = "
+                                f"{c.range_margin}) at {where}; weaken the surface power, move the lens closer "
+                                "(placement.distance_mm) or shrink the working range"))
+            pen += float(worst_use[k] - allowed) + float(np.mean(np.clip(worst_use - allowed, 0, None)))
     if c.observable and not vs:
         S, z0, _ = sensitivity_from_model(model, raise_invalid=False)
         ob = None if S is None else metrics_from_S(S, model.noise_cov, bench, z0).observability

@@ -18,6 +18,7 @@ design whose ``to_dict()`` equals the original's.
 from __future__ import annotations
 
 import copy
+import math
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from ..errors import ConfigError
 from ..fileio import read_json, write_atomic
 from ..optics.bench import Bench
 from ..optics.lens import Lens
+from ..schema import DESIGN_KIND, Num, check_header, number, number_array
 
 __all__ = ["SCHEMA_VERSION", "Design", "save_design", "load_design", "metrics_dict"]
 
@@ -142,7 +144,7 @@ class Design:
     def to_dict(self) -> dict:
         d = {
             "schema_version": SCHEMA_VERSION,
-            "kind": "lensforge.design",
+            "kind": DESIGN_KIND,
             "model": self.model,
             "free": list(self.free),
             "parameters": copy.deepcopy(self.parameters),
@@ -172,37 +174,51 @@ class Design:
     def from_dict(cls, d: dict, where: str = "design") -> "Design":
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: expected a JSON object")
-        ver = d.get("schema_version")
-        if ver != SCHEMA_VERSION:
-            raise ConfigError(f"{where}.schema_version: expected {SCHEMA_VERSION}, got {ver!r}; "
-                              "re-run `lensforge design` with this lensforge version")
+        check_header(d, where, kind=DESIGN_KIND, required=True, versions=(SCHEMA_VERSION,))
         for req in ("lens", "bench", "model", "free", "parameters"):
             if req not in d:
                 raise ConfigError(f"{where}.{req}: missing")
+        for key, typ, what in (("free", list, "a list of parameter names"), ("parameters", dict, "an object"),
+                               ("bounds", dict, "an object"), ("labels", dict, "an object"),
+                               ("constraints", dict, "an object"), ("feasibility", dict, "an object"),
+                               ("metrics", dict, "an object"), ("settings", dict, "an object"),
+                               ("start", dict, "an object"), ("history", list, "a list")):
+            if key in d and not isinstance(d[key], typ):
+                raise ConfigError(f"{where}: {key} must be {what}, got {type(d[key]).__name__}")
+        if "weights" in d:
+            number_array(d["weights"], f"{where}: weights", (2,))
+        if d.get("seed") is not None:
+            number(d["seed"], f"{where}: seed", Num(0, 2**63 - 1, integer=True))
+        for key in ("n_evals", "wall_time_s"):
+            if key in d:
+                number(d[key], f"{where}: {key}", Num(0, math.inf))
         seed = d.get("seed")
-        return cls(
-            lens=Lens.from_dict(d["lens"], f"{where}.lens"),
-            bench=Bench.from_dict(d["bench"], f"{where}.bench"),
-            model=str(d["model"]),
-            free=tuple(d["free"]),
-            parameters=d["parameters"],
-            bounds=d.get("bounds", {}),
-            criterion=str(d.get("criterion", "J")),
-            weights=tuple(d.get("weights", (1.0, 1.0))),
-            constraints=d.get("constraints", {}),
-            feasibility=d.get("feasibility", {}),
-            metrics=d.get("metrics", {}),
-            method=str(d.get("method", "")),
-            seed=None if seed is None else int(seed),
-            settings=d.get("settings", {}),
-            start=d.get("start", {}),
-            history=tuple(d.get("history", ())),
-            n_evals=int(d.get("n_evals", 0)),
-            wall_time_s=float(d.get("wall_time_s", 0.0)),
-            labels=d.get("labels", {}),
-            lensforge_version=str(d.get("lensforge_version", "")),
-            robust=d.get("robust"),
-        )
+        try:
+            return cls(
+                lens=Lens.from_dict(d["lens"], f"{where}.lens"),
+                bench=Bench.from_dict(d["bench"], f"{where}.bench"),
+                model=str(d["model"]),
+                free=tuple(d["free"]),
+                parameters=d["parameters"],
+                bounds=d.get("bounds", {}),
+                criterion=str(d.get("criterion", "J")),
+                weights=tuple(d.get("weights", (1.0, 1.0))),
+                constraints=d.get("constraints", {}),
+                feasibility=d.get("feasibility", {}),
+                metrics=d.get("metrics", {}),
+                method=str(d.get("method", "")),
+                seed=None if seed is None else int(seed),
+                settings=d.get("settings", {}),
+                start=d.get("start", {}),
+                history=tuple(d.get("history", ())),
+                n_evals=int(d.get("n_evals", 0)),
+                wall_time_s=float(d.get("wall_time_s", 0.0)),
+                labels=d.get("labels", {}),
+                lensforge_version=str(d.get("lensforge_version", "")),
+                robust=d.get("robust"),
+            )
+        except (TypeError, ValueError, OverflowError) as e:  # metadata of an unexpected shape
+            raise ConfigError(f"{where}: malformed design file ({e}); write it with `lensforge design`") from None
 
 
 def save_design(design: Design, path) -> Path:

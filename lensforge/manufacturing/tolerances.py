@@ -36,6 +36,7 @@ from scipy.special import gammaincinv
 
 from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
+from ..schema import TOLERANCE_RANGES, check_header, check_ranges
 from ..optics.lens import Lens
 from ..optics.materials import Material
 from ..optics.surfaces import CanonicalSurface, Freeform
@@ -272,11 +273,11 @@ class Tolerances:
     @classmethod
     def from_dict(cls, d: dict, where: str = "tolerances") -> "Tolerances":
         """Strictly validated tolerances from the TOML layout; missing keys keep their defaults."""
-        if not isinstance(d, dict):
-            raise ConfigError(f"{where}: expected a table")
+        check_header(d, where, kind="lensforge.tolerances")
+        check_ranges(d, TOLERANCE_RANGES, where)
         kw = {}
         for table, body in d.items():
-            if table in ("schema_version", "description"):
+            if table in ("schema_version", "kind", "description"):
                 continue
             if table not in _TABLES:
                 raise ConfigError(f"{where}: unknown tolerance component [{table}]; use one of {list(COMPONENTS)}")

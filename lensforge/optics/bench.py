@@ -18,8 +18,10 @@ import tomli_w
 
 from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
+from ..schema import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
 
-__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "load_bench", "save_bench", "write_atomic"]
+__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench",
+           "write_atomic"]
 
 
 @dataclass(frozen=True)
@@ -56,8 +58,28 @@ class Sensor:
     pupil in {S} (0.9 mm and on-axis are ASSUMPTIONS sized to the 3.5 mm beam);
     zernike_order: highest radial order fitted (4 -> 14 modes without piston; the
     instrument offers up to 10); irradiance_threshold: a lenslet is valid when its
-    irradiance is at least this fraction of the input beam's peak (exp(-2), the
-    1/e^2 level; ASSUMPTION).
+    sub-aperture mean irradiance is at least this fraction of the input beam's peak
+    (exp(-2), the 1/e^2 level; ASSUMPTION).
+
+    What a lenslet measures (``sensor_range.py``): its spot centroid, i.e. the
+    irradiance-weighted mean slope over its square sub-aperture, integrated by a
+    ``subaperture_quadrature`` x ``subaperture_quadrature`` Gauss-Legendre rule of aimed
+    rays (1 = the old lenslet-centre sample).
+    lenslet_focal_mm: lenslet focal length. ASSUMPTION 5.2 mm: the Thorlabs MLA150
+    microlens data of the WFS40-7AR could not be found here; values quoted for 150 um
+    MLAs lie in 4.1-6.7 mm (``benchmarks/bench_sensor_range.py`` shows results over that
+    span). pixel_mm: camera pixel, 5.5 um (WFS40: 2048 px over the 11.26 mm aperture).
+    spot_assignment: how the software assigns a spot to its lenslet (bench setting):
+    'fixed' -- each lenslet's own pitch x pitch window (lenslet-bound dynamic range,
+    Akondi & Dubra, Opt. Express 29(6) 8417, 2021); 'tracking' -- spots may leave their
+    window while neighbouring spots do not overlap and stay on the camera (that paper's
+    optical dynamic range; ASSUMPTION that the WFS40 software tracks this far: Thorlabs
+    quotes its range as a local-curvature limit, whose value was not found here);
+    'none' -- no range check (the pre-issue-14 model). The default is 'tracking'.
+    centroid_window_px: side of the square pixel window, centred on the spot, in which
+    the centroid is taken (ASSUMPTION 27 px = one 150 um pitch; 0 = complete-spot
+    centroid); centroid_threshold: noise cut as a fraction of the spot peak
+    subtracted before the centroid (ASSUMPTION 0, see ``sensor_range.py``).
     """
 
     pitch_mm: float = 0.150
@@ -66,6 +88,12 @@ class Sensor:
     pupil_center_mm: tuple = (0.0, 0.0)
     zernike_order: int = 4
     irradiance_threshold: float = math.exp(-2.0)
+    lenslet_focal_mm: float = 5.2
+    pixel_mm: float = 0.0055
+    spot_assignment: str = "tracking"
+    subaperture_quadrature: int = 2
+    centroid_window_px: int = 27
+    centroid_threshold: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -73,9 +101,9 @@ class Noise:
     """Sensor noise: independent Gaussian noise on each lenslet slope (x and y).
 
     slope_sigma_urad: 1-sigma slope noise per lenslet and axis. ASSUMPTION: a spot
-    centroid precision of 1/100 pixel (WFS40: 5.5 um pixels, 2048 px over 11.26 mm)
-    behind a lenslet of focal length ~6.7 mm (MLA150-7AR; assumed) gives
-    0.055 um / 6.7 mm = 8 urad per frame. Over the default pupil this is ~0.7 nm RMS
+    centroid precision of ~1/100 pixel (WFS40: 5.5 um pixels, 2048 px over 11.26 mm)
+    behind a lenslet of focal length 5.2-6.7 mm (sensor.lenslet_focal_mm, assumed) gives
+    0.055 um / (5.2-6.7 mm) = 8-11 urad per frame; 8 urad is kept (1/130 px at 5.2 mm). Over the default pupil this is ~0.7 nm RMS
     of fitted wavefront, below Thorlabs' quoted sensitivity of lambda/100 (5 nm).
     """
 
@@ -114,7 +142,13 @@ class Bench:
     rank_rtol: float = 1e-7
 
     def __post_init__(self):
+        check_ranges(self.to_dict(), BENCH_RANGES, "")
         _validate(self)
+        s = self.sensor
+        if (s.aperture_mm / s.pitch_mm) ** 2 > MAX_LENSLETS:
+            raise ConfigError(f"sensor.pitch_mm: {s.aperture_mm} mm / {s.pitch_mm} mm gives "
+                              f"{(s.aperture_mm / s.pitch_mm) ** 2:.3g} lenslets, over the limit of "
+                              f"{MAX_LENSLETS} (512 x 512); check the units (mm)")
 
     @classmethod
     def default(cls) -> "Bench":
@@ -144,19 +178,17 @@ class Bench:
 _POSITIVE = {
     "laser.wavelength_nm", "laser.beam_diameter_mm", "placement.distance_mm", "sensor.pitch_mm",
     "sensor.aperture_mm", "sensor.pupil_radius_mm", "sensor.zernike_order", "pose_limits.translation_mm",
-    "pose_limits.rotation_rad", "rank_rtol", "fd_steps", "pose_scales",
+    "pose_limits.rotation_rad", "rank_rtol", "fd_steps", "pose_scales", "sensor.lenslet_focal_mm",
+    "sensor.pixel_mm", "sensor.subaperture_quadrature",
 }
-_NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold"}
+SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
+_NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
+           "sensor.centroid_threshold"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
 
 
 def _check_number(name: str, v, integer: bool = False):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ConfigError(f"{name}: expected a number, got {type(v).__name__} {v!r}")
-    if integer and float(v) != int(v):
-        raise ConfigError(f"{name}: expected an integer, got {v!r}")
-    if not math.isfinite(float(v)):
-        raise ConfigError(f"{name}: must be finite, got {v!r}")
+    number(v, name, Num(-math.inf, math.inf, integer=integer))
 
 
 def _validate(obj, prefix: str = "") -> None:
@@ -166,6 +198,10 @@ def _validate(obj, prefix: str = "") -> None:
         if dataclasses.is_dataclass(v):
             _validate(v, name + ".")
             continue
+        if f.name == "spot_assignment":
+            if v not in SPOT_ASSIGNMENTS:
+                raise ConfigError(f"{name}: must be one of {list(SPOT_ASSIGNMENTS)}, got {v!r}")
+            continue
         if f.name in _LENGTHS:
             if not isinstance(v, (tuple, list)) or len(v) != _LENGTHS[f.name]:
                 raise ConfigError(f"{name}: expected a list of {_LENGTHS[f.name]} numbers, got {v!r}")
@@ -173,7 +209,7 @@ def _validate(obj, prefix: str = "") -> None:
                 _check_number(f"{name}[{i}]", e)
             vals = list(map(float, v))
         else:
-            _check_number(name, v, integer=(f.name == "zernike_order"))
+            _check_number(name, v, integer=f.name in ("zernike_order", "subaperture_quadrature", "centroid_window_px"))
             vals = [float(v)]
         if name in _POSITIVE and min(vals) <= 0:
             raise ConfigError(f"{name}: must be > 0, got {v!r}")
@@ -195,6 +231,10 @@ def _validate(obj, prefix: str = "") -> None:
                 f"sensor.pupil_radius_mm: ~{n_lenslets:.0f} lenslets cannot determine {n_modes} Zernike modes; "
                 "enlarge the pupil or lower zernike_order"
             )
+        if not 1 <= obj.subaperture_quadrature <= 6:
+            raise ConfigError(f"sensor.subaperture_quadrature: must be 1..6 points per axis, got {obj.subaperture_quadrature}")
+        if obj.centroid_threshold >= 1:
+            raise ConfigError(f"sensor.centroid_threshold: must be < 1 (fraction of the spot peak), got {obj.centroid_threshold}")
         if obj.irradiance_threshold >= 1:
             raise ConfigError(f"sensor.irradiance_threshold: must be < 1 (fraction of beam peak), got {obj.irradiance_threshold}")
         del reach
@@ -239,8 +279,10 @@ def _from_dict(cls, d, where):
 def load_bench(path) -> Bench:
     """Read a bench TOML file; missing keys take the defaults."""
     d = read_toml(path, "bench file")
+    check_header(d, f"bench file {Path(path).name}", kind="lensforge.bench")
     d.pop("schema_version", None)
-    return Bench.from_dict(d, "bench")
+    d.pop("kind", None)
+    return Bench.from_dict(d, f"{Path(path).name}:bench")
 
 
 def save_bench(bench: Bench, path) -> Path:

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import ConfigError, LensGeometryError
 from ..fileio import read_json
+from ..schema import DESIGN_KIND, LENS_RANGES, check_header, check_ranges
 from .bench import Bench
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict
@@ -151,6 +152,7 @@ class Lens:
         for req in ("front", "back", "thickness"):
             if req not in d:
                 raise ConfigError(f"{where}.{req}: missing")
+        check_ranges(d, LENS_RANGES, where)
         d["front"] = surface_from_dict(d["front"], f"{where}.front")
         d["back"] = surface_from_dict(d["back"], f"{where}.back")
         return cls(**d)
@@ -275,9 +277,18 @@ def resolve_lens(spec) -> ResolvedLens:
     data = read_json(p, "lens file")
     if not isinstance(data, dict):
         raise ConfigError(f"lens file {p}: expected a JSON object")
-    lens = Lens.from_dict(data.get("lens", data), where=f"{p.name}:lens").validate()
-    bench = Bench.from_dict(data["bench"], f"{p.name}:bench") if isinstance(data.get("bench"), dict) else None
-    return ResolvedLens(lens, p.stem, bench, data, source=spec)
+    if "lens" in data or "schema_version" in data or "kind" in data:  # a design file: the whole file is
+        check_header(data, f"design file {p.name}", kind=DESIGN_KIND, required=True)  # checked, whichever
+        if "lens" not in data:                                                         # part a command uses
+            raise ConfigError(f"design file {p.name}: no \"lens\" key; write it with `lensforge design` "
+                              "or add the lens as \"lens\": {front, back, thickness, ...}")
+        lens = Lens.from_dict(data["lens"], where=f"{p.name}:lens").validate()
+        bench = Bench.from_dict(data["bench"], f"{p.name}:bench") if "bench" in data else None
+        return ResolvedLens(lens, p.stem, bench, data, source=spec)
+    if not {"front", "back", "thickness"} & set(data):
+        raise ConfigError(f"lens file {p.name}: neither a design file (schema_version, kind, lens) nor a lens "
+                          "(front, back, thickness); give a file written by `lensforge design`")
+    return ResolvedLens(Lens.from_dict(data, where=f"{p.name}:lens").validate(), p.stem, None, data, source=spec)
 
 
 def load_lens(source) -> tuple[Lens, dict]:

@@ -91,7 +91,8 @@ class Observability:
     singular_values: of S~ = J_w D (descending); null_space: (n, n - rank) numerically
     null directions; weak_space: (n, k) directions whose predicted 1-sigma exceeds
     their scale (singular value < limit) but are not null (both in scaled units u =
-    x / D); names: parameter names.
+    x / D); basis: (n, rank) orthonormal basis of the non-null directions (scaled);
+    names: parameter names.
     """
 
     observable: np.ndarray
@@ -102,6 +103,7 @@ class Observability:
     singular_values: np.ndarray
     null_space: np.ndarray
     weak_space: np.ndarray
+    basis: np.ndarray
     names: tuple = DOF_NAMES
 
     @property
@@ -165,6 +167,7 @@ def observability(Jw, scales, rtol: float, limit: float = 1.0, names=DOF_NAMES,
         _, sr, Vr = np.linalg.svd(Sr, full_matrices=False)
         cov_scaled = (Q @ Vr.T / sr**2) @ (Q @ Vr.T).T
         weak = (Q @ Vr.T)[:, sr < 1.0 / limit]
+        basis = Q
     else:
         tol = rtol * sv[0] if sv[0] > 0 else 0.0
         rank = int(np.sum(sv > tol))
@@ -172,13 +175,14 @@ def observability(Jw, scales, rtol: float, limit: float = 1.0, names=DOF_NAMES,
         F = St.T @ St
         cov_scaled = np.linalg.inv(F) if rank == n else np.linalg.pinv(F, rcond=rtol**2)
         weak = Vt[:rank][sv[:rank] < 1.0 / limit].T
+        basis = Vt[:rank].T
     std_scaled = np.sqrt(np.clip(np.diag(cov_scaled), 0, None))
     if rank < n:
         involved = np.any(np.abs(null) > (NULL_ENTRY_TOL_NOISY if equilibrate else NULL_ENTRY_TOL), axis=1)
         std_scaled = np.where(involved, np.inf, std_scaled)
     return Observability(observable=std_scaled <= limit, std=std_scaled * D, cov=cov_scaled * np.outer(D, D),
                          rank=rank, rank_tol=float(tol), singular_values=sv, null_space=null, weak_space=weak,
-                         names=tuple(names))
+                         basis=basis, names=tuple(names))
 
 
 def sensitivity_from_model(model: ForwardModel, pose=None, raise_invalid: bool = True):

@@ -1,19 +1,23 @@
-"""Shack-Hartmann sensor model: lenslet slopes in a fixed pupil -> Zernike coefficients.
+"""Shack-Hartmann sensor model: lenslet centroid slopes in a fixed pupil -> Zernike coefficients.
 
-The sensor samples the wavefront slope at each lenslet of a fixed circular pupil in
-{S} (centre and radius from the bench). For each lenslet centre lensforge aims one
-beam ray onto it (Newton iteration on the beam coordinates, see ``trace.aim_rays``),
-so the slope is exact at the lenslet centre and varies smoothly with the pose —
-finite differences of the model are clean. The local Jacobian of the
-beam-to-sensor map gives the irradiance at each lenslet (flux conservation):
-I = I_beam(u, v) / |det d(X, Y)/d(u, v)|; a lenslet is valid when I is at least
-``sensor.irradiance_threshold`` times the input peak. Approximation: slopes are
-sampled at lenslet centres, not averaged over the 150 um sub-aperture (error
-O(pitch^2 * third derivative of W), negligible for the fitted low orders).
+The sensor samples the wavefront at each lenslet of a fixed circular pupil in {S}
+(centre and radius from the bench). Each lenslet reports its spot centroid: the
+irradiance-weighted mean slope over its square sub-aperture (``sensor_range.py``
+documents the centroid model). lensforge aims one beam ray at each point of a
+Gauss-Legendre rule over every sub-aperture (Newton iteration on the beam
+coordinates, ``trace.aim_rays``), so the model varies smoothly with the pose and
+finite differences of it are clean. The local Jacobian of the beam-to-sensor map
+gives the irradiance at each point (flux conservation):
+I = I_beam(u, v) / |det d(X, Y)/d(u, v)|; a lenslet is lit when its mean irradiance
+is at least ``sensor.irradiance_threshold`` times the input peak, and assignable
+while its spot stays within the sensor's spot-assignment range
+(``sensor.spot_assignment``). A pose is valid when every pupil lenslet is traced,
+lit and assignable.
 
 Zernike fit (DESIGN.md): W in um of OPD, dW/dx = L/N, dW/dy = M/N, Noll modes
 2..N of the sensor's radial order over the pupil (piston is not measurable), by
-least squares z = F s with the fit matrix F = pinv(G) computed once per pupil.
+least squares z = F s with the fit matrix F = pinv(G) computed once per pupil
+(G holds the modes' gradients at the lenslet centres).
 Sensor noise: independent Gaussian slope noise sigma per lenslet and axis, so
 cov(z) = sigma^2 F F^T.
 """
@@ -25,9 +29,10 @@ from functools import cached_property, lru_cache
 
 import numpy as np
 
-from ..errors import PoseRangeError, PupilError, TraceError
+from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
+from .sensor_range import SensorRange, centroid_slopes, quadrature_rule, range_use, summarize_range, window_gain
 from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel
 from .zernike import modes_up_to_order, zernike_gradient
 
@@ -40,7 +45,8 @@ class LensletPupil:
 
     centres: (n, 2) lenslet centres in {S} (mm); modes: Noll indices fitted;
     G: (2n, m) slopes [sx..., sy...] (rad) per um of each coefficient;
-    F: (m, 2n) least-squares fit matrix (um per rad); radius_mm, center_mm: pupil.
+    F: (m, 2n) least-squares fit matrix (um per rad); radius_mm, center_mm: pupil;
+    neighbours: (k, 3) rows (a, b, axis): pupil lenslet b is one pitch after a along axis.
     """
 
     centres: np.ndarray
@@ -49,6 +55,7 @@ class LensletPupil:
     F: np.ndarray
     radius_mm: float
     center_mm: tuple
+    neighbours: np.ndarray
 
     @property
     def n_lenslets(self) -> int:
@@ -88,9 +95,16 @@ def lenslet_pupil(sensor: Sensor) -> LensletPupil:
             "enlarge the pupil or lower sensor.zernike_order"
         )
     F = np.linalg.pinv(G)
-    for arr in (centres, G, F):
+    index = -np.ones(X.shape, dtype=np.int64)
+    index[inside] = np.arange(len(centres))
+    pairs = []
+    for axis, (ia, ib) in enumerate([(index[:, :-1], index[:, 1:]), (index[:-1, :], index[1:, :])]):
+        both = (ia >= 0) & (ib >= 0)
+        pairs.append(np.stack([ia[both], ib[both], np.full(both.sum(), axis)], axis=1))
+    neighbours = np.concatenate(pairs)
+    for arr in (centres, G, F, neighbours):
         arr.setflags(write=False)
-    return LensletPupil(centres, modes, G, F, a, (cx, cy))
+    return LensletPupil(centres, modes, G, F, a, (cx, cy), neighbours)
 
 
 def check_pose_range(bench: Bench, poses) -> None:
@@ -119,10 +133,13 @@ def check_pose_range(bench: Bench, poses) -> None:
 class ZernikeResult:
     """Forward-model output for P poses.
 
-    z: (P, m) Zernike coefficients (um, Noll modes ``modes``); slopes: (P, n, 2) rad;
-    irradiance: (P, n) relative to the input beam peak; status: (P, n) ray codes;
-    valid: (P,) all lenslets traced and lit; uv: (P, n, 2) aimed beam coordinates
-    (warm start for nearby poses); rays_traced: total rays traced.
+    z: (P, m) Zernike coefficients (um, Noll modes ``modes``); slopes: (P, n, 2) rad
+    centroid slopes (sensor_range.py's centroid model); irradiance: (P, n) sub-aperture mean relative
+    to the input beam peak; status: (P, n) ray codes (worst over the sub-aperture);
+    valid: (P,) all lenslets traced, lit and assignable; uv: (P, n*q, 2) aimed beam
+    coordinates of the q quadrature points per lenslet (warm start for nearby poses);
+    rays_traced: total rays traced; range_use: (P, n) fraction of the spot-assignment
+    limit used (<= 1: in the sensor's range); spot_model: sensor.spot_assignment.
     """
 
     z: np.ndarray
@@ -133,6 +150,13 @@ class ZernikeResult:
     uv: np.ndarray
     rays_traced: int
     threshold: float
+    range_use: np.ndarray | None = None
+    spot_model: str = "none"
+
+    @property
+    def in_range(self) -> np.ndarray:
+        """(P, n) True where the lenslet's spot can be assigned."""
+        return np.ones(self.irradiance.shape, bool) if self.range_use is None else self.range_use <= 1.0
 
     def reason(self, p: int = 0) -> str:
         """Why pose p is invalid ('' if valid)."""
@@ -145,9 +169,16 @@ class ZernikeResult:
             worst = codes[np.argmax(counts)]
             return f"{counts.sum()} of {st.size} pupil lenslets not reached: {STATUS_NAMES[int(worst)]}"
         low = self.irradiance[p] < self.threshold
+        if low.any():
+            return (
+                f"pupil under-filled: {low.sum()} of {low.size} lenslets below the irradiance threshold "
+                f"(min {self.irradiance[p].min():.3g} of beam peak, threshold {self.threshold:.3g})"
+            )
+        out = ~self.in_range[p]
         return (
-            f"pupil under-filled: {low.sum()} of {low.size} lenslets below the irradiance threshold "
-            f"(min {self.irradiance[p].min():.3g} of beam peak, threshold {self.threshold:.3g})"
+            f"out of sensor range: the spots of {out.sum()} of {out.size} pupil lenslets cannot be assigned "
+            f"('{self.spot_model}' spot assignment, up to {self.range_use[p].max():.3g} x its limit; "
+            f"max slope {np.abs(self.slopes[p]).max() * 1e3:.3g} mrad)"
         )
 
     def raise_if_invalid(self) -> None:
@@ -159,9 +190,14 @@ class ZernikeResult:
                 raise TraceError(f"{msg} at pose {p}; reduce surface slopes or the lens tilt")
             if np.any((st == CLIPPED) | (st == MISSED)):
                 raise TraceError(f"{msg} at pose {p}; enlarge the lens aperture or re-centre the beam")
-            raise PupilError(
-                f"{msg} at pose {p}: the beam misses or under-fills the sensor pupil; "
-                "change sensor.pupil_radius_mm/pupil_center_mm or placement.distance_mm"
+            if np.any(self.irradiance[p] < self.threshold):
+                raise PupilError(
+                    f"{msg} at pose {p}: the beam misses or under-fills the sensor pupil; "
+                    "change sensor.pupil_radius_mm/pupil_center_mm or placement.distance_mm"
+                )
+            raise SensorRangeError(
+                f"{msg} at pose {p}; move the lens closer to the sensor (placement.distance_mm), shrink "
+                "sensor.pupil_radius_mm, or use a lens with weaker wavefront slopes"
             )
 
 
@@ -177,6 +213,12 @@ class ForwardModel:
         self.lens = lens.validate() if validate else lens
         self.kernel = lens_kernel(lens, bench.laser.wavelength_nm)
         self.pupil = lenslet_pupil(bench.sensor)
+        off, w = quadrature_rule(bench.sensor.subaperture_quadrature)
+        self.quad_offsets, self.quad_weights = off, w
+        self.window_gain = window_gain(bench.sensor, bench.laser.wavelength_nm)
+        # aim targets: the quadrature points of every lenslet, lenslet-major (n * q, 2)
+        self.targets = np.ascontiguousarray(
+            (self.pupil.centres[:, None, :] + bench.sensor.pitch_mm * off[None, :, :]).reshape(-1, 2))
 
     @property
     def modes(self) -> np.ndarray:
@@ -197,16 +239,30 @@ class ForwardModel:
         poses = np.atleast_2d(np.asarray(poses, dtype=float))
         if check_range:
             check_pose_range(self.bench, poses)
-        uv, slopes, det, status, n = aim_rays(self.bench, self.lens, poses, self.pupil.centres,
-                                              u0=uv0, kernel=self.kernel)
+        sensor = self.bench.sensor
+        n_l = self.pupil.n_lenslets
+        q = self.quad_weights.size
+        uv, sq, det, st, n = aim_rays(self.bench, self.lens, poses, self.targets, u0=uv0, kernel=self.kernel)
+        P = uv.shape[0]
         w = 0.5 * self.bench.laser.beam_diameter_mm
         with np.errstate(divide="ignore", invalid="ignore"):
             irr = np.exp(-2.0 * (uv[..., 0] ** 2 + uv[..., 1] ** 2) / (w * w)) / det
-        irr = np.where(status == OK, irr, 0.0)
-        thr = self.bench.sensor.irradiance_threshold
-        valid = np.all(status == OK, axis=1) & np.all(irr >= thr, axis=1)
+        st = st.reshape(P, n_l, q)
+        wi = np.where(st == OK, irr.reshape(P, n_l, q), 0.0) * self.quad_weights
+        irr_mean = wi.sum(axis=2)
+        slopes = centroid_slopes(sq.reshape(P, n_l, q, 2), wi, self.quad_offsets, self.quad_weights, self.window_gain)
+        status = st.max(axis=2)  # OK (0) only if every quadrature ray is OK
+        slopes = np.where((status == OK)[..., None] & (irr_mean > 0)[..., None], slopes, 0.0)
+        thr = sensor.irradiance_threshold
+        use = range_use(sensor, self.bench.laser.wavelength_nm, self.pupil.centres, self.pupil.neighbours, slopes)
+        valid = np.all(status == OK, axis=1) & np.all(irr_mean >= thr, axis=1) & np.all(use <= 1.0, axis=1)
         z = self.pupil.fit(slopes)
-        return ZernikeResult(z, slopes, irr, status, valid, uv, n, thr)
+        return ZernikeResult(z, slopes, irr_mean, status, valid, uv, n, thr, use, sensor.spot_assignment)
+
+    def sensor_range(self, pose=None) -> SensorRange:
+        """Spot-assignment summary at ``pose`` (default nominal): ok, max slope, lenslets out."""
+        res = self.evaluate(np.zeros(6) if pose is None else pose, check_range=False)
+        return summarize_range(self.bench.sensor, self.bench.laser.wavelength_nm, res.slopes[0], res.range_use[0])
 
     def zernike(self, poses, rng: np.random.Generator | None = None) -> np.ndarray:
         """Zernike coefficients (P, m) or (m,) in um; raises if any pose is not measurable.

@@ -364,5 +364,5 @@ def surface_from_dict(d: dict, where: str = "surface") -> Surface:
         return cls(**d)
     except ConfigError as e:
         raise ConfigError(f"{where}: {e}") from None
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise ConfigError(f"{where}: {e}") from None

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from ..errors import ConfigError
 from ..manufacturing.tolerances import COMPONENT_SPECS
 from ..optics.lens import resolve_lens
+from .runner import dask_client
 from .study import StudyConfig, resolve_tolerances, verify
 
 __all__ = ["SensitivityRow", "BudgetRow", "Budget", "sensitivity_analysis", "tolerance_budget", "scaled_all",
@@ -101,8 +102,6 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
 def _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress):
     """Yield run(tolerances, config) -> StudyResult, all runs sharing one Dask client (or
     in-process when workers == 0 and no scheduler/client is given), with common random numbers."""
-    from .runner import dask_client
-
     own = client is None and not (workers == 0 and scheduler is None)
     with (dask_client(workers, scheduler) if own else nullcontext(client)) as cl:
         def run(t, config, label="as-built lenses"):

@@ -24,11 +24,11 @@ Execution modes (``workers`` / ``scheduler``):
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
 import sqlite3
 import time
-import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,9 +37,9 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ConfigError
-from ..progress import progress_bar
+from ..interrupts import Interrupted
 
-__all__ = ["TrialStore", "config_hash", "trial_seeds", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV"]
+__all__ = ["TrialStore", "config_hash", "trial_seeds", "trial_seed", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV"]
 
 STORE_SCHEMA = 1
 
@@ -58,9 +58,30 @@ def config_hash(config: dict) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
+def trial_seed(seed: int, i: int) -> np.random.SeedSequence:
+    """Trial i's seed sequence, made on demand: equal to ``SeedSequence(seed).spawn(n)[i]``
+    for every n > i (spawn's child i is SeedSequence(seed, spawn_key=(i,)))."""
+    return np.random.SeedSequence(int(seed), spawn_key=(int(i),))
+
+
+class _LazySeeds:
+    """seeds[i] -> trial_seed(seed, i), without materialising n seed sequences."""
+
+    def __init__(self, seed: int, n: int):
+        self.seed, self.n = int(seed), int(n)
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, i):
+        if not 0 <= i < self.n:
+            raise IndexError(i)
+        return trial_seed(self.seed, i)
+
+
 def trial_seeds(seed: int, n: int) -> list[np.random.SeedSequence]:
     """Per-trial seed sequences: child i of SeedSequence(seed), independent of n."""
-    return np.random.SeedSequence(int(seed)).spawn(int(n))
+    return [trial_seed(seed, i) for i in range(int(n))]
 
 
 def _dumps(record: dict) -> str:
@@ -74,21 +95,67 @@ class TrialStore:
     when ``resume`` is true and its hash matches; otherwise raises ConfigError.
     """
 
-    def __init__(self, path: Path, conn: sqlite3.Connection, config_hash: str):
+    def __init__(self, path: Path, conn: sqlite3.Connection, config_hash: str, lock_fd: int | None = None,
+                 created: bool = False):
         self.path = path
         self._conn = conn
         self.config_hash = config_hash
+        self._lock_fd = lock_fd
+        self.created = created  # this open made the file (a failed start removes it again)
+        self.made_dir = False  # ... and its folder
 
     @classmethod
-    def open(cls, path, config_hash_: str, config: dict, resume: bool = False) -> "TrialStore":
+    @contextmanager
+    def session(cls, path, config_hash_: str, config: dict, resume: bool = False, n_trials: int | None = None):
+        """``open`` as a context manager: closes the store (and releases its lock) on exit; a store
+        this session created that holds no finished trial when an error or interrupt ends it is
+        removed, so a failed start never blocks a rerun."""
+        st = cls.open(path, config_hash_, config, resume=resume, n_trials=n_trials)
+        try:
+            yield st
+        except BaseException:
+            empty = st.created and not st.done()
+            st.close()
+            if empty:
+                for f in (st.path, st.path.with_name(st.path.name + "-wal"), st.path.with_name(st.path.name + "-shm"),
+                          _lock_path(st.path)):
+                    f.unlink(missing_ok=True)
+                if st.made_dir and not any(st.path.parent.iterdir()):
+                    st.path.parent.rmdir()
+            raise
+        st.close()
+
+    @classmethod
+    def open(cls, path, config_hash_: str, config: dict, resume: bool = False,
+             n_trials: int | None = None) -> "TrialStore":
+        """Open (create, or with ``resume`` reopen) a store, holding its folder lock.
+
+        n_trials: the study's size; a resumed study may grow (larger n) but not shrink.
+        """
         path = Path(path)
+        made_dir = not path.parent.exists()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lock_fd = _lock(path)
+        try:
+            st = cls._open_locked(path, config_hash_, config, resume, n_trials, lock_fd)
+        except BaseException:
+            os.close(lock_fd)
+            if made_dir:
+                _lock_path(path).unlink(missing_ok=True)
+                path.parent.rmdir() if not any(path.parent.iterdir()) else None
+            raise
+        st.made_dir = made_dir
+        return st
+
+    @classmethod
+    def _open_locked(cls, path, config_hash_, config, resume, n_trials, lock_fd) -> "TrialStore":
         exists = path.exists() and path.stat().st_size > 0
         if exists and not resume:
             raise ConfigError(
                 f"store {path}: already exists; pass resume=True (--resume) to continue that study, "
                 "or choose another output folder"
             )
-        path.parent.mkdir(parents=True, exist_ok=True)
+        conn = None
         try:
             conn = sqlite3.connect(str(path), timeout=30.0, isolation_level=None)
             conn.execute("PRAGMA journal_mode=WAL")
@@ -111,10 +178,25 @@ class TrialStore:
                     f"{config_hash_[:12]}...); resume only with the same lens, bench, tolerances, seed and "
                     "options, or choose another output folder"
                 )
+            if n_trials is not None:
+                old = conn.execute("SELECT value FROM meta WHERE key='n_trials'").fetchone()
+                if old is not None and int(old[0]) > int(n_trials):
+                    conn.execute("ROLLBACK")
+                    conn.close()
+                    raise ConfigError(
+                        f"store {path}: holds a study of {int(old[0])} lenses; resume it with -n {int(old[0])} "
+                        f"or more (a larger -n extends it), not {int(n_trials)}"
+                    )
+                conn.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('n_trials', ?)", (str(int(n_trials)),))
             conn.execute("COMMIT")
         except sqlite3.DatabaseError as e:
+            if conn is not None:
+                conn.close()
+            if isinstance(e, sqlite3.OperationalError) and not exists:
+                raise ConfigError(f"store {path}: cannot be created ({e}); check free space and permissions "
+                                  "of the output folder") from None
             raise ConfigError(f"store {path}: not a lensforge study store ({e}); choose another output folder") from None
-        return cls(path, conn, config_hash_)
+        return cls(path, conn, config_hash_, lock_fd, created=not exists)
 
     def done(self) -> set[int]:
         """Indices of the finished trials."""
@@ -122,12 +204,16 @@ class TrialStore:
 
     def put(self, idx: int, record: dict) -> None:
         """Append one finished trial (its own transaction; a repeat is ignored)."""
-        self._conn.execute("BEGIN IMMEDIATE")
         try:
+            self._conn.execute("BEGIN IMMEDIATE")
             self._conn.execute("INSERT OR IGNORE INTO trials (idx, record) VALUES (?, ?)", (int(idx), _dumps(record)))
             self._conn.execute("COMMIT")
         except BaseException:
-            self._conn.execute("ROLLBACK")
+            if self._conn.in_transaction:
+                try:
+                    self._conn.execute("ROLLBACK")
+                except sqlite3.Error:  # pragma: no cover - SQLite already rolled back
+                    pass
             raise
 
     def records(self, n: int | None = None) -> dict[int, dict]:
@@ -141,14 +227,42 @@ class TrialStore:
     def close(self) -> None:
         try:
             self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except sqlite3.Error:  # e.g. a full disk: the WAL stays and is replayed on the next open
+            pass
         finally:
             self._conn.close()
+            if self._lock_fd is not None:
+                os.close(self._lock_fd)
+                self._lock_fd = None
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.lock")
+
+
+def _lock(path: Path) -> int:
+    """An exclusive lock on ``.<store>.lock`` beside the store (released when the fd closes)."""
+    import fcntl
+
+    lock = _lock_path(path)
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:
+        raise ConfigError(f"store {path}: cannot create its lock file ({e.strerror}); "
+                          "check the output folder's permissions and free space") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise ConfigError(f"store {path}: another lensforge process is writing this study; wait for it "
+                          "to finish or choose another output folder") from None
+    return fd
 
 
 @dataclass(frozen=True)
@@ -160,6 +274,19 @@ class RunStats:
     wall_s: float
     mode: str
     workers: int
+
+
+def _progress(enabled: bool, total: int, done: int, description: str):
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    prog = Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), TimeRemainingColumn(),
+        console=Console(stderr=True), disable=not enabled, transient=False,
+    )
+    task = prog.add_task(description or "trials", total=total, completed=done)
+    return prog, task
 
 
 def _pin_threads() -> None:
@@ -199,9 +326,9 @@ def run_trials(
         raise ConfigError(f"n_trials: must be >= 0, got {n_trials}")
     if workers is not None and int(workers) < 0:
         raise ConfigError(f"workers: must be >= 0 (0 = in this process), got {workers}")
-    seeds = trial_seeds(seed, n_trials)
+    seeds = _LazySeeds(seed, n_trials)
     records = store.records(n_trials) if store is not None else {}
-    todo = [i for i in range(n_trials) if i not in records]
+    todo = (i for i in range(n_trials) if i not in records)
     n_resumed = len(records)
     t0 = time.perf_counter()
 
@@ -210,25 +337,26 @@ def run_trials(
             store.put(i, rec)
         records[i] = rec
 
+    prog, task = _progress(progress, n_trials, n_resumed, description)
     if client is not None:
         mode = "client"
     else:
         mode = "serial" if (scheduler is None and workers == 0) else ("scheduler" if scheduler else "local")
     n_workers = 0
-    with progress_bar(n_trials, description or "trials", progress) as bar:
-        bar.advance(n_resumed)
-        if not todo:
+    n_todo = n_trials - len(records)
+    with prog:
+        if not n_todo:
             pass
         elif mode == "serial":
             for i in todo:
                 finish(i, trial_fn(context, i, seeds[i]))
-                bar.advance()
+                prog.advance(task)
         elif client is not None:
-            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, bar.advance)
+            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
         else:
             with dask_client(workers, scheduler) as cl:
-                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, bar.advance)
-    stats = RunStats(len(todo), n_resumed, time.perf_counter() - t0, mode, n_workers)
+                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
+    stats = RunStats(n_todo, n_resumed, time.perf_counter() - t0, mode, n_workers)
     return {i: records[i] for i in sorted(records)}, stats
 
 
@@ -252,20 +380,39 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
             raise ConfigError(f"scheduler: cannot reach Dask scheduler {scheduler!r} ({e}); check the address") from None
     else:
         n = int(workers) if workers is not None else (os.cpu_count() or 1)
-        with warnings.catch_warnings():  # "port 8787 is already in use ... Hosting the HTTP server on port N
-            warnings.filterwarnings("ignore", message=".*Hosting the HTTP server.*")  # instead": noise to a user
-            cluster = LocalCluster(
-                n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=None,
-                env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
-            )
+        cluster = LocalCluster(
+            n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=":0",
+            env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
+        )
         client = Client(cluster)
     try:
+        if cluster is not None:
+            client.run(_ignore_sigint)
         client.run(_pin_threads)
         yield client
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    except Interrupted:
+        raise  # Ctrl-C under the CLI: it kills the workers itself, a graceful close only adds noise
+    except BaseException:
+        _close(client, cluster)
+        raise
+    _close(client, cluster)
+
+
+def _close(client, cluster) -> None:
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
+def _ignore_sigint() -> None:
+    """Run on each local worker: Ctrl-C in the terminal goes to the whole process group;
+    the parent handles it, so workers must not print their own KeyboardInterrupt."""
+    import signal
+
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # pragma: no cover - not the worker's main thread
+        pass
 
 
 def _submit_all(client, trial_fn, context, todo, seeds, finish, advance) -> int:
@@ -275,15 +422,24 @@ def _submit_all(client, trial_fn, context, todo, seeds, finish, advance) -> int:
     ctx = client.scatter(context, broadcast=True)
     futures = {}
     tag = f"{os.getpid()}-{time.monotonic_ns()}"
-    for i in todo:
-        f = client.submit(trial_fn, ctx, i, seeds[i], key=f"trial-{i}-{tag}", pure=False)
-        futures[f] = i
+    todo = iter(todo)
+    window = max(64, 8 * max(n_workers, 1))  # trials in flight: memory stays bounded for any n
+
+    def submit(k):
+        for i in itertools.islice(todo, k):
+            f = client.submit(trial_fn, ctx, i, seeds[i], key=f"trial-{i}-{tag}", pure=False)
+            futures[f] = i
+            ac.add(f)
+
+    ac = as_completed()
     try:
-        for fut in as_completed(futures):
+        submit(window)
+        for fut in ac:
             i = futures.pop(fut)
             finish(i, fut.result())
             advance()
             fut.release()
+            submit(1)
     finally:
         for f in futures:
             f.cancel()

@@ -44,12 +44,12 @@ from ..errors import CalibrationError, ConfigError, LensforgeError, PupilError, 
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
-from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.handeye import solve_handeye
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_design import candidate_poses, design_poses, predicted_uncertainty
 from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
+from ..calibration.session import lens_pose_crlb, lit_mask
 from ..calibration.robot import PAPER_Z, Scene, flange_pose, paper_scene, random_lens_poses
 from .statistics import median
 
@@ -170,28 +170,6 @@ def _log_right(T_true, T_est) -> np.ndarray:
     return matrix_to_pose(invert_poses(T_true) @ T_est)
 
 
-def _lit_filter(model: ForwardModel, x: np.ndarray, margin_mm: float) -> np.ndarray:
-    """Mask of poses lit on the nominal model at x and at +-margin in tx and ty."""
-    shifts = np.zeros((5, 6))
-    shifts[1, 0], shifts[2, 0], shifts[3, 1], shifts[4, 1] = margin_mm, -margin_mm, margin_mm, -margin_mm
-    P = (x[:, None, :] + shifts[None]).reshape(-1, 6)
-    v = model.evaluate(P, check_range=False).valid.reshape(len(x), 5)
-    lim = model.bench.pose_limits
-    inside = (np.abs(x[:, :3]) <= lim.translation_mm).all(1) & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad)
-    return v.all(1) & inside
-
-
-def _cov_B_nominal(bench: Bench, lens: Lens) -> np.ndarray:
-    """Pose-estimation CRLB at nominal (right perturbation of B at x = 0)."""
-    m = metrics(bench, lens)
-    if m.rank < 6:
-        raise CalibrationError(
-            "lens: its pose is not fully observable (rank "
-            f"{m.rank} < 6); hand-eye calibration needs all 6 DOF of the lens pose: use a freeform lens"
-        )
-    return m.crlb
-
-
 def plan_poses(bench: Bench, lens: Lens, design: str, rng: np.random.Generator, cfg: ScenarioConfig | None = None,
                scene: Scene | None = None, model: ForwardModel | None = None, n_candidates: int = 600,
                check_reach: bool = True):
@@ -203,14 +181,14 @@ def plan_poses(bench: Bench, lens: Lens, design: str, rng: np.random.Generator, 
     cfg = cfg or ScenarioConfig()
     scene = scene or scenario_scene(bench)
     model = model or ForwardModel(bench, lens)
-    cov_B = _cov_B_nominal(bench, lens)
+    cov_B = lens_pose_crlb(bench, lens)
     n = cfg.n_calibration
     t, r = cfg.work_translation_mm, cfg.work_rotation_rad
     if design == "random":
         x = np.empty((0, 6))
         for _ in range(20):
             c = random_lens_poses(rng, 4 * n, t, r)
-            x = np.concatenate([x, c[_lit_filter(model, c, cfg.lit_margin_mm)]])
+            x = np.concatenate([x, c[lit_mask(model, c, cfg.lit_margin_mm)]])
             if len(x) >= n:
                 break
         if len(x) < n:
@@ -219,7 +197,7 @@ def plan_poses(bench: Bench, lens: Lens, design: str, rng: np.random.Generator, 
         flange_pose(scene, x, check_reach=check_reach)  # PoseRangeError if the robot cannot
     elif design == "oed":
         cand = candidate_poses(rng, n_candidates, t, r)
-        cand = cand[_lit_filter(model, cand, cfg.lit_margin_mm)]
+        cand = cand[lit_mask(model, cand, cfg.lit_margin_mm)]
         if len(cand) < n:
             raise PupilError(f"scenario: only {len(cand)} lit candidate poses; shrink the working box")
         res = design_poses(scene, cov_B, n, rng, candidates=cand, n_random_sets=1, check_reach=check_reach)

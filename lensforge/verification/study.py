@@ -27,20 +27,27 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from ..calibration.handeye import solve_handeye
+from ..calibration.initial_poses import InitialPoseModel
+from ..calibration.pose_estimation import estimate_poses_batch
+from ..calibration.robot import flange_pose, lens_pose_matrix, paper_scene
 from ..errors import ConfigError, LensforgeError
+from ..manufacturing.tolerances import load_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.pose_estimation import estimate_poses_batch
 from .statistics import error_stats, outcome_counts
+from .runner import TrialStore, config_hash, run_trials
+from .self_calibration import self_calibrate_trial
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "run_trial", "StudyContext", "summarize_errors",
            "SCHEMA_VERSION"]
@@ -143,8 +150,6 @@ def _substream(ss: np.random.SeedSequence, k: int) -> np.random.Generator:
 def _as_built(ctx: StudyContext, rng: np.random.Generator) -> Lens:
     if ctx.tolerances is None:
         return ctx.lens
-    from ..manufacturing.tolerances import sample_as_built
-
     return sample_as_built(ctx.lens, ctx.tolerances, rng)
 
 
@@ -163,9 +168,6 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     (pose fits, mean), handeye_chi2_dof, and, with self-calibration, the same
     errors after it under "selfcal".
     """
-    from ..calibration.handeye import solve_handeye
-    from ..calibration.robot import flange_pose, lens_pose_matrix
-
     cfg = ctx.config
     rng_lens, rng_scene, rng_noise = (_substream(ss, k) for k in range(3))
     nominal = ctx.nominal_model
@@ -221,8 +223,6 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
            "chi2_dof": float(np.mean(est.chi2[est.converged]) / max(len(nominal.modes) - 6, 1)),
            "handeye_chi2_dof": float(he.chi2_dof), "handeye_observable": bool(he.observable), **base}
     if cfg.self_calibrate:
-        from .self_calibration import self_calibrate_trial
-
         rec["selfcal"] = self_calibrate_trial(ctx, nominal, z[used], x_est, x_true[used], A_cmd[used], X_true,
                                               he.Z, he.X, lens_ab)
     return rec
@@ -319,8 +319,6 @@ def resolve_tolerances(tolerances):
     if tolerances is None:
         return None
     if isinstance(tolerances, (str, Path)):
-        from ..manufacturing.tolerances import load_tolerances
-
         return load_tolerances(tolerances)
     if not hasattr(tolerances, "to_dict"):
         raise ConfigError(f"tolerances: expected a Tolerances or a TOML path, got {type(tolerances).__name__}")
@@ -338,9 +336,6 @@ def calibration_plan(config: StudyConfig, plan_seed: int = 0) -> np.ndarray:
 def make_context(lens: Lens, bench: Bench, tolerances, config: StudyConfig, plan_seed: int = 0,
                  scene=None, grasp_sigma=None) -> StudyContext:
     """Assemble the trial context (plan, paper scene at the bench's distance, grasp error model)."""
-    from ..calibration.initial_poses import InitialPoseModel
-    from ..calibration.robot import paper_scene
-
     scene = scene or paper_scene(bench.placement.distance_mm)
     if grasp_sigma is None:
         m = InitialPoseModel()
@@ -397,8 +392,6 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     A script that starts a local cluster (workers != 0) needs the usual
     ``if __name__ == "__main__":`` guard (worker processes are spawned).
     """
-    from .runner import TrialStore, config_hash, run_trials
-
     if int(n_lenses) != n_lenses or n_lenses < 1:
         raise ConfigError(f"n_lenses: need an integer >= 1, got {n_lenses!r}")
     r = resolve_lens(design_or_lens)
@@ -411,12 +404,9 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     ctx = make_context(lens, bench, tol, config, plan_seed)
     cfg = context_config(ctx, seed)
     chash = config_hash(cfg)
-    st = TrialStore.open(store, chash, cfg, resume=resume) if store is not None else None
-    try:
+    with (TrialStore.session(store, chash, cfg, resume=resume, n_trials=int(n_lenses)) if store is not None
+          else nullcontext()) as st:
         records, stats = run_trials(run_trial, ctx, int(n_lenses), int(seed), st, workers=workers,
                                     scheduler=scheduler, progress=progress, description=description,
                                     client=client)
-    finally:
-        if st is not None:
-            st.close()
     return result_from_records(records, cfg, chash, store, stats, config)

@@ -1,0 +1,591 @@
+"""The real-bench calibration session: plan the robot poses, estimate one lens pose,
+calibrate X and Z from a WFS export and the recorded flange poses.
+
+Frames (DESIGN.md): A = ^W T_E (flange in the robot base), B = ^S T_O (lens in the
+sensor frame), X = ^E T_O (grasp), Z = ^W T_S (sensor in the robot base); mm, rad.
+
+``plan``: D-optimal choice (``pose_design.design_poses``) of lens poses in a working
+box about the nominal placement, among candidates whose pupil stays lit on the
+design's model (with a lateral margin) and whose flange pose the robot reaches
+(inverse kinematics within the joint limits); the flange poses follow from the
+robot's cell (nominal Z and X, robot TOML [cell]).
+
+``calibrate``: ``method="two-stage"``: (1) each measured Zernike vector gives a lens
+pose with its covariance (``pose_estimation``, Levenberg-Marquardt from the pose the
+cell predicts for the recorded flange pose, then from nominal); (2) A X = Z B by
+maximum likelihood (``handeye.solve_handeye``) with the robot's repeatability and
+each pose's covariance. Poses are matched by id; ids in one file only, unlit poses
+and poses whose estimate fails are reported and left out. Outliers, two robust
+tests (Bonferroni 1 - alpha/n quantile of the chi2 law, scaled up by the median
+chi2 over its expectation so that an overall misfit does not reject every pose):
+first on each lens-pose fit (m - 6 DOF: a wrong local minimum or a corrupted frame),
+then on each pose's hand-eye residual (6 DOF), after which the solve is repeated once. Model check: chi2 of the final solve against its degrees
+of freedom (p-value); a small p-value warns that the lens as built or the noise
+model differs from what the design says (``method="joint"`` estimates the as-built
+lens, issue 10; not available yet).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..errors import CalibrationError, ConfigError, LensforgeError, PoseRangeError
+from ..optics.bench import Bench
+from ..optics.lens import Lens, resolve_lens
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
+from ..optics.sensitivity import metrics
+from ..optics.shack_hartmann import ForwardModel
+from ..optics.zernike import from_thorlabs_vector
+from . import formats
+from .handeye import solve_handeye
+from .pose_design import candidate_poses, design_poses
+from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
+from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
+
+__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
+           "two_stage", "calibrate", "estimate", "load_design_lens",
+           "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
+
+SCHEMA_VERSION = 1
+CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha, progress) -> CalibrationResult
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def load_design_lens(design, bench: Bench | None = None) -> tuple[Lens, Bench]:
+    """(lens, bench) of anything ``optics.lens.resolve_lens`` takes (design file, paper
+    lens, Lens, Design); the bench is the given one, else the design's, else the default."""
+    r = resolve_lens(design)
+    return r.lens, r.bench_or(bench)
+
+
+def bench_for_measurements(bench: Bench, wfs: formats.WfsData) -> Bench:
+    """The bench with the WFS file's Zernike order, pupil and wavelength (the file
+    describes the instrument's settings; absent header values keep the bench's)."""
+    h = wfs.header
+    sensor = {"zernike_order": int(wfs.order)}
+    if "pupil_radius_mm" in h:
+        sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])
+    if "pupil_center_mm" in h:
+        sensor["pupil_center_mm"] = tuple(float(v) for v in h["pupil_center_mm"])
+    changes = {"sensor": sensor}
+    if "wavelength_nm" in h:
+        changes["laser"] = {"wavelength_nm": float(h["wavelength_nm"])}
+    return bench.replace(**changes)
+
+
+def zernike_for_model(z_thorlabs, model: ForwardModel) -> np.ndarray:
+    """Noll-ordered coefficients (n, m) of the model's modes from Thorlabs-ordered rows
+    (n, K) (piston dropped)."""
+    z = np.atleast_2d(np.asarray(z_thorlabs, dtype=float))
+    out = []
+    for row in z:
+        noll, c = from_thorlabs_vector(row)
+        lut = dict(zip(noll.tolist(), c))
+        out.append([lut[int(j)] for j in model.modes])
+    return np.array(out)
+
+
+def _as_table(obj, reader):
+    return obj if not isinstance(obj, (str, Path)) else reader(obj)
+
+
+def lit_mask(model: ForwardModel, x: np.ndarray, margin_mm: float) -> np.ndarray:
+    """Poses (k, 6) lit on the model at x and at +-margin_mm in tx and ty, inside the
+    bench's pose range."""
+    x = np.atleast_2d(x)
+    shifts = np.zeros((5, 6))
+    shifts[1, 0], shifts[2, 0], shifts[3, 1], shifts[4, 1] = margin_mm, -margin_mm, margin_mm, -margin_mm
+    P = (x[:, None, :] + shifts[None]).reshape(-1, 6)
+    v = model.evaluate(P, check_range=False).valid.reshape(len(x), 5)
+    lim = model.bench.pose_limits
+    inside = (np.abs(x[:, :3]) <= lim.translation_mm).all(1) & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad)
+    return v.all(1) & inside
+
+
+def lens_pose_crlb(bench: Bench, lens: Lens) -> np.ndarray:
+    """Pose-estimation CRLB (6x6, (mm, rad)^2) at nominal; CalibrationError if rank < 6."""
+    m = metrics(bench, lens)
+    if m.rank < 6:
+        raise CalibrationError(f"lens: its pose is not fully observable (rank {m.rank} < 6); hand-eye calibration "
+                               "needs all 6 DOF of the lens pose: use a freeform lens")
+    return m.crlb
+
+
+# ----------------------------------------------------------------------------- frames for output
+
+
+def frame_dict(T: np.ndarray, cov_right: np.ndarray) -> dict:
+    """JSON block of a calibrated frame: matrix (4x4, mm), xyzabc (mm, deg, KUKA),
+    quaternion_wxyz, std {tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg} and cov (6x6).
+
+    std and cov are of the translation error t_est - t_true (mm) and the rotation-error
+    vector of R_est R_true^T (rad; std in deg), both in the parent frame: the solver's
+    right-perturbation covariance rotated by R. Unobservable directions: std null,
+    cov entries null."""
+    T = np.asarray(T, dtype=float)
+    R = T[:3, :3]
+    M = np.zeros((6, 6))
+    M[:3, :3] = R
+    M[3:, 3:] = R
+    with np.errstate(invalid="ignore"):
+        cov_fin = np.where(np.isfinite(cov_right), cov_right, 0.0)
+        cov = M @ cov_fin @ M.T
+    bad_dof = ~np.isfinite(np.diag(cov_right))
+    if bad_dof.any():  # an infinite right-frame variance spreads to every parent axis it touches
+        touched = (np.abs(M[:, bad_dof]) > 1e-9).any(axis=1)
+        cov[touched, :] = np.nan
+        cov[:, touched] = np.nan
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    names = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
+    scale = (1.0, 1.0, 1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi)
+    return {
+        "matrix": T.tolist(),
+        "xyzabc": formats.matrix_to_xyzabc(T).tolist(),
+        "quaternion_wxyz": formats.matrix_to_quaternion(T).tolist(),
+        "std": {n: (float(s * k) if np.isfinite(s) else None) for n, s, k in zip(names, std, scale)},
+        "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in cov],
+    }
+
+
+# ----------------------------------------------------------------------------- plan
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """Calibration poses for the robot.
+
+    ids: pose ids ("1".."n"); x: (n, 6) lens poses relative to nominal (mm, rad); A:
+    (n, 4, 4) flange poses ^W T_E (mm); joints: (n, 6) IK joint angles (rad);
+    predicted: pose_design's predicted (Cramer-Rao) uncertainty of the design (cov:
+    12x12, right perturbations of X then Z); z_std: (6,) predicted 1-sigma of Z
+    (mm, rad, {S} axes); random_ratio: random / designed RMS Z translation error;
+    robot: the RobotModel; scene: the nominal cell; lens/bench: the design's."""
+
+    ids: tuple
+    x: np.ndarray
+    A: np.ndarray
+    joints: np.ndarray
+    predicted: dict
+    z_std: np.ndarray
+    random_ratio: float
+    robot: RobotModel
+    scene: Scene
+    bench: Bench
+    work_translation_mm: float
+    work_rotation_rad: float
+
+    def files(self, formats_: tuple = ("csv", "json", "krl")) -> dict:
+        """{file name: text} for the plan writers (formats.PLAN_WRITERS)."""
+        out = {}
+        extra = {"robot": self.robot.name, "frame": "flange ^W T_E in the robot base"}
+        for f in formats_:
+            if f not in formats.PLAN_WRITERS:
+                raise ConfigError(f"plan format: {f!r} is not one of {', '.join(formats.PLAN_WRITERS)}")
+            out.update(formats.PLAN_WRITERS[f](self.ids, self.A, joints_deg=np.degrees(self.joints), extra=extra))
+        out["plan.json"] = formats.dumps_json(self.to_dict()) + "\n"
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (units in the keys)."""
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "kind": "calibration_plan",
+            "robot": self.robot.name,
+            "n_poses": len(self.ids),
+            "work_box": {"translation_mm": self.work_translation_mm,
+                         "rotation_deg": math.degrees(self.work_rotation_rad)},
+            "predicted_Z_std": {"tx_mm": float(self.z_std[0]), "ty_mm": float(self.z_std[1]),
+                                "tz_mm": float(self.z_std[2]), "rx_deg": math.degrees(self.z_std[3]),
+                                "ry_deg": math.degrees(self.z_std[4]), "rz_deg": math.degrees(self.z_std[5])},
+            "predicted_Z_translation_rms_mm": float(self.predicted["Z_translation_mm"]),
+            "predicted_Z_rotation_rms_deg": math.degrees(self.predicted["Z_rotation_rad"]),
+            "random_over_designed_Z_translation": float(self.random_ratio),
+            "poses": [{"pose": i, "lens_pose": {"tx_mm": p[0], "ty_mm": p[1], "tz_mm": p[2], "rx_rad": p[3],
+                                                 "ry_rad": p[4], "rz_rad": p[5]},
+                       "flange_xyzabc": formats.matrix_to_xyzabc(a).tolist(), "joints_deg": np.degrees(q).tolist()}
+                      for i, p, a, q in zip(self.ids, self.x.tolist(), self.A, self.joints)],
+        }
+
+
+def plan(design, *, bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12, seed: int = 0,
+         work_translation_mm: float = 0.5, work_rotation_rad: float = math.radians(5.0), lit_margin_mm: float = 0.3,
+         n_candidates: int = 600) -> Plan:
+    """D-optimal calibration poses for the robot (see the module docstring).
+
+    design: design file / paper lens name / Lens; robot: RobotModel, registry name or
+    TOML path (default KR 10); n: poses; work_*: the box about nominal the poses are
+    drawn from (ASSUMPTION +-0.5 mm, +-5 deg, as verification/scenario.py);
+    lit_margin_mm: lateral margin a pose must keep lit. Every pose is reach-checked by
+    inverse kinematics and pupil-lit on the design's model.
+    """
+    lens, bench = load_design_lens(design, bench)
+    robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
+    if int(n) != n or n < 3:
+        raise ConfigError(f"n: need an integer >= 3 poses, got {n!r}")
+    scene = robot_scene(robot, bench.placement.distance_mm)
+    model = ForwardModel(bench, lens)
+    cov_B = lens_pose_crlb(bench, lens)
+    rng = np.random.default_rng(seed)
+    cand = candidate_poses(rng, n_candidates, work_translation_mm, work_rotation_rad)
+    cand = cand[lit_mask(model, cand, lit_margin_mm)]
+    unreachable = np.zeros(len(cand), bool)
+    for _ in range(10):
+        ok = cand[~unreachable]
+        if len(ok) < n:
+            break
+        res = design_poses(scene, cov_B, n, rng, candidates=ok, n_random_sets=20, check_reach=False)
+        joints, bad, q = [], [], None
+        for i, A in enumerate(res.A):
+            try:
+                q = inverse_kinematics(A, robot, q0=q)
+                joints.append(q)
+            except PoseRangeError:
+                bad.append(i)
+        if not bad:
+            ids = tuple(str(i + 1) for i in range(n))
+            return Plan(ids=ids, x=res.x, A=res.A, joints=np.array(joints), predicted=res.chosen,
+                        z_std=np.sqrt(np.diag(res.chosen["cov"])[6:]), random_ratio=res.ratio_Z_translation,
+                        robot=robot, scene=scene, bench=bench, work_translation_mm=work_translation_mm,
+                        work_rotation_rad=work_rotation_rad)
+        idx_ok = np.flatnonzero(~unreachable)
+        for i in bad:  # design_poses returns candidate rows: mark them
+            hit = np.flatnonzero(np.all(ok == res.x[i], axis=1))
+            unreachable[idx_ok[hit]] = True
+    raise PoseRangeError(f"plan: fewer than {n} lit candidate poses the {robot.name} can reach in the working box "
+                         f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); check the robot "
+                         "file's [cell] (sensor and grasp) or shrink the box")
+
+
+# ----------------------------------------------------------------------------- estimate
+
+
+def _estimate_one(model: ForwardModel, z: np.ndarray, starts) -> tuple[PoseEstimate | None, str]:
+    """LM estimate from the first start that converges; (None, reason) otherwise."""
+    reason = ""
+    for x0 in starts:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UnobservableWarning)
+                est = estimate_pose_model(model, z, x0=np.clip(x0, -4.0, 4.0) if x0 is not None else None)
+        except LensforgeError as e:
+            reason = str(e)
+            continue
+        if est.converged:
+            return est, ""
+        reason = est.message
+    return None, reason or "the estimate did not converge"
+
+
+def estimate(design, measurement, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
+    """One lens pose with its covariance from one WFS measurement.
+
+    measurement: WFS CSV/JSON path or WfsData; pose_id selects a row (default: the
+    file must hold exactly one). Returns {"pose_id", "estimate": PoseEstimate,
+    "bench": the bench used}."""
+    lens, bench = load_design_lens(design, bench)
+    wfs = _as_table(measurement, formats.read_wfs)
+    if pose_id is None:
+        if len(wfs.ids) != 1:
+            raise ConfigError(f"{wfs.source}: holds {len(wfs.ids)} poses; choose one with --pose ID")
+        k = 0
+    else:
+        if str(pose_id) not in wfs.ids:
+            raise ConfigError(f"{wfs.source}: field pose: no pose id {pose_id!r} (ids: {', '.join(wfs.ids[:10])}...)")
+        k = wfs.ids.index(str(pose_id))
+    b = bench_for_measurements(bench, wfs)
+    model = ForwardModel(b, lens)
+    z = zernike_for_model(wfs.zernike[k], model)[0]
+    est, reason = _estimate_one(model, z, [None])
+    if est is None:
+        raise CalibrationError(f"{wfs.source}: row {wfs.rows[k]}: no lens pose found ({reason})")
+    return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
+
+
+# ----------------------------------------------------------------------------- calibrate
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """X = ^E T_O and Z = ^W T_S from a bench session.
+
+    handeye: the final HandEyeResult (cov_X, cov_Z right perturbations, see handeye);
+    poses_used: ids in the solve; poses_rejected: [{"pose", "reason"}]; per_pose:
+    [{"pose", "handeye_chi2", "estimate_chi2_dof", "outlier"}] of every estimated pose;
+    p_value: of the chi2 model check; warnings; method; robot; bench (as measured)."""
+
+    X: np.ndarray
+    Z: np.ndarray
+    handeye: object
+    poses_used: tuple
+    poses_rejected: tuple
+    per_pose: tuple
+    chi2: float
+    dof: int
+    chi2_dof: float
+    p_value: float
+    method: str
+    robot: str
+    warnings: tuple = field(default=())
+    outlier_threshold: float = float("nan")
+
+    def to_json(self) -> dict:
+        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected."""
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "Z": frame_dict(self.Z, self.handeye.cov_Z),
+            "X": frame_dict(self.X, self.handeye.cov_X),
+            "chi2_dof": float(self.chi2_dof),
+            "poses_used": list(self.poses_used),
+            "poses_rejected": list(self.poses_rejected),
+        }
+
+    def to_dict(self) -> dict:
+        """The full result file: to_json() plus the model check and per-pose table."""
+        return {**self.to_json(), "kind": "calibration_result", "method": self.method, "robot": self.robot,
+                "chi2": float(self.chi2), "dof": int(self.dof), "p_value": float(self.p_value),
+                "outlier_threshold_chi2": float(self.outlier_threshold),
+                "observable": bool(self.handeye.observable),
+                "null_directions": list(self.handeye.null_directions),
+                "per_pose": list(self.per_pose), "warnings": list(self.warnings),
+                "std_convention": "translation error and rotation-error vector of R_est R_true^T, parent frame "
+                                  "(Z: robot base {W}; X: flange {E}); cov (mm, rad)^2"}
+
+    def summary(self) -> str:
+        """Human summary (the numbers of to_dict())."""
+        d = self.to_json()
+        lines = [f"lensforge calibration ({self.method}, {self.robot}): {len(self.poses_used)} poses used, "
+                 f"{len(self.poses_rejected)} rejected",
+                 f"chi2/dof = {self.chi2_dof:.3g} (dof {self.dof}, p = {self.p_value:.3g})"]
+        for name, frame in (("Z = ^W T_S (sensor in the robot base)", "Z"), ("X = ^E T_O (lens in the flange)", "X")):
+            f = d[frame]
+            s = f["std"]
+
+            def fmt(v, k=1.0, nd=4):
+                return "n/a (unobservable)" if v is None else f"{v * k:.{nd}g}"
+            lines += [name,
+                      "  X Y Z (mm):  " + "  ".join(f"{v:.4f}" for v in f["xyzabc"][:3]),
+                      "  A B C (deg): " + "  ".join(f"{v:.5f}" for v in f["xyzabc"][3:]),
+                      "  quaternion (w x y z): " + "  ".join(f"{v:.8f}" for v in f["quaternion_wxyz"]),
+                      f"  1-sigma translation (um): {fmt(s['tx_mm'], 1e3)} {fmt(s['ty_mm'], 1e3)} {fmt(s['tz_mm'], 1e3)}",
+                      f"  1-sigma rotation (mdeg):  {fmt(s['rx_deg'], 1e3)} {fmt(s['ry_deg'], 1e3)} {fmt(s['rz_deg'], 1e3)}"]
+        for r in self.poses_rejected:
+            lines.append(f"rejected pose {r['pose']}: {r['reason']}")
+        for w in self.warnings:
+            lines.append(f"warning: {w}")
+        return "\n".join(lines) + "\n"
+
+    def residual_plot(self) -> bytes:
+        """PNG: hand-eye residual chi2 (6 DOF) and lens-fit chi2/dof per pose, with the
+        outlier threshold; outliers in red."""
+        import io
+
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        ids = [p["pose"] for p in self.per_pose]
+        he = np.array([p["handeye_chi2"] if p["handeye_chi2"] is not None else np.nan for p in self.per_pose])
+        ec = np.array([p["estimate_chi2_dof"] for p in self.per_pose])
+        col = ["tab:red" if p["outlier"] else "tab:blue" for p in self.per_pose]
+        fig, ax = plt.subplots(2, 1, figsize=(max(6, 0.35 * len(ids) + 2), 6), sharex=True)
+        ax[0].bar(ids, he, color=col)
+        ax[0].axhline(6.0, color="k", lw=0.8, ls=":", label="expected (6 DOF)")
+        ax[0].axhline(self.outlier_threshold, color="tab:red", lw=0.8, ls="--", label="outlier threshold")
+        ax[0].set_ylabel("hand-eye residual chi2 (6 DOF)")
+        ax[0].set_yscale("log")
+        ax[0].legend(fontsize=8)
+        ax[0].set_title(f"{self.method}: chi2/dof = {self.chi2_dof:.3g}, p = {self.p_value:.2g}")
+        ax[1].bar(ids, ec, color=col)
+        ax[1].axhline(1.0, color="k", lw=0.8, ls=":")
+        ax[1].set_ylabel("lens-pose fit chi2/dof")
+        ax[1].set_xlabel("pose id (red: flagged outlier)")
+        ax[1].tick_params(axis="x", labelrotation=90)
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=120)
+        plt.close(fig)
+        return buf.getvalue()
+
+    def files(self) -> dict:
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""
+        return {"calibration.json": formats.dumps_json(self.to_dict()) + "\n",
+                "easy_handeye.yaml": formats.easy_handeye_yaml(self.Z),
+                "summary.txt": self.summary(),
+                "residuals.png": self.residual_plot()}
+
+
+OUTLIER_ALPHA = 1e-3  # family-wise false-alarm rate of the outlier test
+
+
+def _threshold(n: int, scale: float, alpha: float = OUTLIER_ALPHA) -> float:
+    return float(chi2_dist.ppf(1.0 - alpha / max(n, 1), 6) * scale)
+
+
+def _solve(A, B, C, noise):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return solve_handeye(A, B, method="ml", sigma=noise, cov_B=C, on_degenerate="warn")
+
+
+@dataclass(frozen=True, eq=False)
+class SessionData:
+    """A bench session's inputs, matched by pose id: what every calibration method gets.
+
+    ids (n,); A: (n, 4, 4) recorded flange poses (mm); z: (n, m) measured Zernikes (um,
+    Noll modes model.modes); model: ForwardModel of the design's lens on the bench as
+    measured (WFS order, pupil, wavelength); robot; scene: the robot's nominal cell
+    (initial guesses); rejected: [{"pose", "reason"}] so far (unmatched ids)."""
+
+    ids: tuple
+    A: np.ndarray
+    z: np.ndarray
+    model: ForwardModel
+    robot: RobotModel
+    scene: Scene
+    rejected: tuple = ()
+
+
+def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
+                  robot: RobotModel | str | None = None) -> SessionData:
+    """Read and match a session's files by pose id (ids in one file only are reported in
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files)."""
+    lens, bench = load_design_lens(design, bench)
+    robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
+    wfs = _as_table(measurements, formats.read_wfs)
+    poses = _as_table(robot_poses, formats.read_robot_poses)
+    rejected = []
+    wfs_ids = set(wfs.ids)
+    for i in poses.ids:
+        if i not in wfs_ids:
+            rejected.append({"pose": i, "reason": f"no WFS measurement in {Path(wfs.source).name}"})
+    pose_ids = set(poses.ids)
+    for i in wfs.ids:
+        if i not in pose_ids:
+            rejected.append({"pose": i, "reason": f"no robot pose in {Path(poses.source).name}"})
+    common = [i for i in poses.ids if i in wfs_ids]
+    if len(common) < 3:
+        raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
+                          f"(need >= 3); the ids of the two files must name the same poses")
+    b = bench_for_measurements(bench, wfs)
+    model = ForwardModel(b, lens)
+    A = poses.T[[poses.ids.index(i) for i in common]]
+    z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
+                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected))
+
+
+def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
+              robot: RobotModel | str | None = None, method: str = "two-stage",
+              outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+    """X and Z from a WFS export and the recorded flange poses (see the module docstring).
+
+    design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
+    WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
+    name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
+    CALIBRATION_METHODS name ("two-stage"; the joint as-built calibration registers
+    there when it lands); progress: optional callable (done, total) called after each
+    lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
+    than 3 usable poses.
+    """
+    if method not in CALIBRATION_METHODS:
+        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
+    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress)
+
+
+def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+    """Two-stage calibration of a matched session: lens poses one by one, then A X = Z B
+    by maximum likelihood, robust outlier test and chi2 model check (module docstring)."""
+    model, scene, robot = data.model, data.scene, data.robot
+    rejected = list(data.rejected)
+    common, A_all, z_all = data.ids, data.A, data.z
+    # initial guesses: the lens pose the nominal cell predicts for each recorded flange pose
+    T_nom_inv = invert_poses(scene.T_SO_nominal)
+    x_cell = matrix_to_pose(T_nom_inv @ invert_poses(scene.Z) @ A_all @ scene.X)
+    ids, A, B, C, est_chi2 = [], [], [], [], []
+    # all poses at once (batched LM from the cell's prediction); a pose that fails is retried alone from nominal
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnobservableWarning)
+        batch = estimate_poses_batch(model, z_all, np.clip(x_cell, -4.0, 4.0))
+    dof = len(model.modes) - 6
+    for k, i in enumerate(common):
+        if batch.converged[k] and np.all(np.isfinite(batch.cov[k])):
+            pose, cov, chi2_dof = batch.poses[k], batch.cov[k], float(batch.chi2[k]) / dof
+        else:
+            est, reason = _estimate_one(model, z_all[k], [None])
+            if est is None:
+                rejected.append({"pose": i, "reason": f"lens pose not found (unlit or out of range): {reason}"})
+                continue
+            pose, cov, chi2_dof = est.pose, est.cov, est.chi2_dof
+        ids.append(i)
+        A.append(A_all[k])
+        B.append(scene.T_SO_nominal @ pose_to_matrix(pose))
+        C.append(pose_vector_cov_to_right(pose, cov))
+        est_chi2.append(chi2_dof)
+        if progress is not None:
+            progress(k + 1, len(common))
+    if len(ids) < 3:
+        raise CalibrationError(f"calibrate: only {len(ids)} poses gave a lens pose (need >= 3); "
+                               + "; ".join(f"{r['pose']}: {r['reason']}" for r in rejected[:3]))
+    # robust test on the lens-pose fits: a wrong local minimum or a corrupted frame fits far worse than the rest
+    fit = np.array(est_chi2) * dof
+    fit_thr = float(chi2_dist.ppf(1.0 - outlier_alpha / len(ids), dof)
+                    * max(1.0, float(np.median(fit)) / chi2_dist.median(dof)))
+    bad_fit = fit > fit_thr
+    if bad_fit.any() and (~bad_fit).sum() >= 3:
+        for k in np.flatnonzero(bad_fit):
+            rejected.append({"pose": ids[k], "reason": f"outlier: lens-pose fit chi2/dof {est_chi2[k]:.3g} above the "
+                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {fit_thr / dof:.3g}"})
+        keep_fit = np.flatnonzero(~bad_fit)
+        ids = [ids[k] for k in keep_fit]
+        A, B, C, est_chi2 = ([v[k] for k in keep_fit] for v in (A, B, C, est_chi2))
+    A, B, C = np.array(A), np.array(B), np.array(C)
+    noise = robot.noise
+    he = _solve(A, B, C, noise)
+    # robust outlier test on the per-pose residual chi2 (scaled by the median / its expectation)
+    scale = max(1.0, float(np.median(he.residual_chi2)) / chi2_dist.median(6))
+    thr = _threshold(len(ids), scale, outlier_alpha)
+    first_chi2 = he.residual_chi2.copy()
+    out = first_chi2 > thr
+    keep = ~out
+    if out.any() and keep.sum() >= 3:
+        he = _solve(A[keep], B[keep], C[keep], noise)
+    else:
+        keep = np.ones(len(ids), bool)
+    chi2_final = dict(zip(np.array(ids)[keep].tolist(), he.residual_chi2.tolist()))
+    per_pose = []
+    for k, i in enumerate(ids):
+        per_pose.append({"pose": i, "handeye_chi2": chi2_final.get(i, float(first_chi2[k])), "estimate_chi2_dof": float(est_chi2[k]),
+                         "outlier": bool(out[k])})
+        if not keep[k]:
+            rejected.append({"pose": i, "reason": f"outlier: hand-eye residual chi2 {first_chi2[k]:.3g} above the "
+                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {thr:.3g}"})
+    used = tuple(np.array(ids)[keep].tolist())
+    p = float(chi2_dist.sf(he.chi2, he.dof)) if he.dof > 0 else float("nan")
+    warns = list(he.warnings)
+    if he.dof > 0 and p < 1e-3:
+        warns.append(f"model check failed: chi2/dof = {he.chi2_dof:.3g} (p = {p:.2g}): the residuals exceed the "
+                     "noise model; the lens as built may differ from its design (a joint as-built calibration "
+                     "estimates it) or the robot/sensor noise is larger than assumed; the reported 1-sigma are "
+                     "then too small")
+    m_fit = float(np.median(est_chi2))
+    fit_dof = len(model.modes) - 6
+    if fit_dof > 0 and m_fit > chi2_dist.ppf(0.999, fit_dof) / fit_dof:
+        warns.append(f"lens-pose fits: median chi2/dof = {m_fit:.3g} over {fit_dof} DOF: the measured wavefronts do "
+                     "not match the design's model (lens as built, bench pupil/wavelength, or sensor noise)")
+    return CalibrationResult(X=he.X, Z=he.Z, handeye=he, poses_used=used, poses_rejected=tuple(rejected),
+                             per_pose=tuple(per_pose), chi2=float(he.chi2), dof=int(he.dof),
+                             chi2_dof=float(he.chi2_dof), p_value=p, method="two-stage", robot=robot.name,
+                             warnings=tuple(warns), outlier_threshold=thr)
+
+
+CALIBRATION_METHODS["two-stage"] = two_stage

@@ -1,0 +1,169 @@
+"""A simulated bench session: the files a real session produces, from a known truth.
+
+``simulate_session`` plans the poses (``calibration.session.plan``), builds a true
+cell (the robot file's nominal Z and X perturbed by the CAD/grasp errors of
+``scenario.ScenarioConfig`` and ``initial_poses.InitialPoseModel``), prints an as-built
+lens from the tolerance model, drives the robot to the planned flange poses and
+records:
+
+- ``robot_poses.csv``: the planned flange poses as the robot reports them, i.e.
+  with its repeatability noise applied (A_recorded = A_true P(a), a ~ robot noise);
+- ``wfs_zernike.csv``: Zernike coefficients (um, Thorlabs order, piston column 0)
+  through the as-built lens at the true lens pose, with the bench's slope noise;
+  poses whose pupil is not lit on the as-built lens get no row (as on the bench);
+- ``truth.json``: ``Z`` and ``X`` (4x4, mm), the as-built lens, the true lens poses,
+  the unlit ids and the seed.
+
+The session is a pure function of (design, tolerances, seed, robot, n).
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..calibration import formats
+from ..calibration.initial_poses import InitialPoseModel
+from ..calibration.robot import RobotModel
+from ..calibration.formats import write_bundle
+from ..calibration.session import SCHEMA_VERSION, calibrate, frame_dict, load_design_lens, plan
+from ..errors import ConfigError, LensforgeError
+from ..fileio import dumps_json
+from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
+from ..optics.bench import Bench
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
+from ..optics.shack_hartmann import ForwardModel
+from ..optics.zernike import to_thorlabs_vector
+
+__all__ = ["SimulatedSession", "simulate_session", "check_sessions", "NEES_3SIGMA_6DOF"]
+
+# ASSUMPTION (as verification/scenario.py): 1-sigma CAD error of the sensor placement Z
+SENSOR_CAD_TRANSLATION_MM = 0.2
+SENSOR_CAD_ROTATION_RAD = math.radians(0.2)
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedSession:
+    """ids; A_recorded (n, 4, 4); A_true; wfs_ids (lit poses); zernike_thorlabs (k, K);
+    Z, X: true 4x4; lens: the as-built lens; x_true: (n, 6) true lens poses; unlit: ids;
+    plan: the calibration Plan; header: WFS header values."""
+
+    ids: tuple
+    A_recorded: np.ndarray
+    A_true: np.ndarray
+    wfs_ids: tuple
+    zernike_thorlabs: np.ndarray
+    Z: np.ndarray
+    X: np.ndarray
+    lens: object
+    x_true: np.ndarray
+    unlit: tuple
+    plan: object
+    header: dict
+    seed: int
+
+    def files(self) -> dict:
+        """{robot_poses.csv, wfs_zernike.csv, truth.json}: name -> text."""
+        truth = {"schema_version": SCHEMA_VERSION, "kind": "session_truth", "seed": self.seed,
+                 "Z": self.Z.tolist(), "X": self.X.tolist(), "lens": self.lens.to_dict(),
+                 "lens_poses": {i: x for i, x in zip(self.ids, self.x_true.tolist())},
+                 "unlit": list(self.unlit), "robot": self.plan.robot.name}
+        return {"robot_poses.csv": formats.xyzabc_csv(self.ids, self.A_recorded),
+                "wfs_zernike.csv": formats.wfs_csv(self.wfs_ids, self.zernike_thorlabs, self.header),
+                "truth.json": dumps_json(truth) + "\n"}
+
+
+def simulate_session(design, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
+                     bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
+                     grasp: InitialPoseModel | None = None, session_plan=None) -> SimulatedSession:
+    """Simulate one bench session (see the module docstring).
+
+    tolerances: Tolerances, a TOML path, "default" (the default tolerance file) or
+    None (the lens exactly as designed); seed: everything random flows from it;
+    session_plan: reuse a Plan (else ``plan(design, robot=robot, n=n, seed=seed)``).
+    """
+    lens, bench = load_design_lens(design, bench)
+    if isinstance(tolerances, str) and tolerances == "default":
+        tolerances = load_tolerances(DEFAULT_TOLERANCES_FILE)
+    elif isinstance(tolerances, (str, Path)):
+        tolerances = load_tolerances(tolerances)
+    elif tolerances is not None and not isinstance(tolerances, Tolerances):
+        raise ConfigError("tolerances: expected a Tolerances, a TOML path, 'default' or None")
+    p = session_plan or plan(lens, bench=bench, robot=robot, n=n, seed=seed)
+    scene = p.scene
+    grasp = grasp or InitialPoseModel()
+    ss_lens, ss_cell, ss_robot, ss_sensor = np.random.SeedSequence([seed, 11]).spawn(4)
+    as_built = lens if tolerances is None else sample_as_built(lens, tolerances, np.random.default_rng(ss_lens))
+    rng = np.random.default_rng(ss_cell)
+    X = scene.X @ pose_to_matrix(rng.normal(size=6) * grasp.sigma)
+    Z = scene.Z @ pose_to_matrix(rng.normal(size=6) * np.array([SENSOR_CAD_TRANSLATION_MM] * 3
+                                                                + [SENSOR_CAD_ROTATION_RAD] * 3))
+    A_true = p.A
+    A_rec = A_true @ pose_to_matrix(scene.noise.sample(np.random.default_rng(ss_robot), len(p.ids)))
+    B_true = invert_poses(Z) @ A_true @ X
+    x_true = matrix_to_pose(invert_poses(scene.T_SO_nominal) @ B_true)
+    model = ForwardModel(bench, as_built, validate=False)
+    res = model.evaluate(x_true, check_range=False)
+    sigma = bench.noise.slope_sigma_urad * 1e-6
+    slopes = res.slopes + np.random.default_rng(ss_sensor).normal(0.0, sigma, res.slopes.shape)
+    z = model.pupil.fit(slopes)
+    lit = np.asarray(res.valid, bool)
+    zt = np.array([to_thorlabs_vector(np.concatenate([[1], model.modes]), np.concatenate([[0.0], zi])) for zi in z[lit]])
+    header = {"wavelength_nm": bench.laser.wavelength_nm, "pupil_center_mm": tuple(bench.sensor.pupil_center_mm),
+              "pupil_radius_mm": bench.sensor.pupil_radius_mm}
+    ids = p.ids
+    return SimulatedSession(ids=ids, A_recorded=A_rec, A_true=A_true, wfs_ids=tuple(np.array(ids)[lit].tolist()),
+                            zernike_thorlabs=zt.reshape(int(lit.sum()), -1), Z=Z, X=X, lens=as_built, x_true=x_true,
+                            unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed))
+
+
+# 3-sigma-equivalent region of a 6-D Gaussian: the chi2(6) quantile at P(|N(0,1)| <= 3) = 0.9973
+NEES_3SIGMA_6DOF = float(chi2_dist.ppf(math.erf(3 / math.sqrt(2)), 6))
+
+
+def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
+                   robot: RobotModel | str | None = None, n: int = 12, progress=None) -> dict:
+    """Simulate ``n_sessions`` seeded sessions (seeds seed .. seed + n_sessions - 1, one
+    shared plan), calibrate each through the files a real session writes, and score Z.
+
+    Returns {"nees": (k,) e^T cov_Z^-1 e of Z (right perturbation, 6 DOF), "inside_3sigma":
+    fraction with NEES <= NEES_3SIGMA_6DOF (the 3-sigma-equivalent ellipsoid), "inside_3sigma_each_axis":
+    fraction with all six parent-frame components within 3 reported sigma, "chi2_dof": (k,),
+    "p_values": (k,) of the chi2 model check, "z_translation_error_mm", "z_rotation_error_deg",
+    "failed": sessions that raised}."""
+
+    lens, bench = load_design_lens(design, bench)
+    p = plan(lens, bench=bench, robot=robot, n=n, seed=seed)
+    nees, chi2_dof, pv, et, er, each, failed = [], [], [], [], [], [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(n_sessions):
+            s = simulate_session(lens, tolerances=tolerances, seed=seed + k, bench=bench, session_plan=p)
+            paths = write_bundle(Path(tmp) / f"s{k}", s.files())
+            try:
+                r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench, robot=p.robot)
+            except LensforgeError as e:
+                failed.append(f"seed {seed + k}: {e}")
+                continue
+            e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
+            nees.append(float(e @ np.linalg.solve(r.handeye.cov_Z, e)))
+            chi2_dof.append(r.chi2_dof)
+            pv.append(r.p_value)
+            et.append(float(np.linalg.norm(e[:3])))
+            er.append(math.degrees(float(np.linalg.norm(e[3:]))))
+            std = frame_dict(r.Z, r.handeye.cov_Z)["std"]
+            sig = np.array([std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
+                           [math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
+            err_parent = np.concatenate([r.Z[:3, 3] - s.Z[:3, 3], rotvecs(r.Z[:3, :3] @ s.Z[:3, :3].T)])
+            each.append(bool(np.all(np.abs(err_parent) <= 3 * sig)))
+            if progress is not None:
+                progress(k + 1, n_sessions)
+    nees = np.array(nees)
+    return {"nees": nees, "inside_3sigma": float(np.mean(nees <= NEES_3SIGMA_6DOF)) if len(nees) else float("nan"),
+            "inside_3sigma_each_axis": float(np.mean(each)) if each else float("nan"),
+            "chi2_dof": np.array(chi2_dof), "p_values": np.array(pv),
+            "z_translation_error_mm": np.array(et), "z_rotation_error_deg": np.array(er), "failed": failed}

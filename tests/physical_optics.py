@@ -1,0 +1,120 @@
+"""Independent physical-optics model of the Shack-Hartmann measurement (test helper).
+
+Shares only the exact ray tracer with lensforge (itself checked against optiland):
+no ray aiming, no sub-aperture quadrature, no flux-Jacobian of the aim.
+
+1. A dense regular grid of beam rays (u, v) is traced to the lenslet plane. The
+   irradiance there is I = I_beam / |det dX/du| with the Jacobian by central
+   differences on the ray grid; the slopes and I are interpolated to each lenslet's
+   fine sample grid (M x M points over the p x p sub-aperture) by Clough-Tocher C1
+   cubics.
+2. Per lenslet the wavefront W is the least-squares polynomial potential of the
+   sampled slopes (degree 6 in the local coordinates), the field E = sqrt(I) exp(i k W).
+3. The lenslet (focal length f, hard square aperture) forms its spot: the Fraunhofer
+   integral of E (matrix Fourier transform, no periodic wrap-around) on a camera window
+   of ``window_px`` pixels of ``pixel`` mm centred where the spot is expected, each
+   pixel integrated over ``sub`` x ``sub`` points. The spot centroid / f is the slope
+   the sensor reports (optionally with a noise cut ``threshold`` x peak subtracted, as
+   the Thorlabs software does per spot).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import CloughTocher2DInterpolator
+
+from lensforge.optics.shack_hartmann import ForwardModel
+from lensforge.optics.trace import OK, trace_rays
+
+
+def _ray_field(model: ForwardModel, pose, n_grid: int):
+    """Scattered (X, slopes, I) at the lenslet plane from a regular beam-ray grid covering the pupil's preimage."""
+    bench, lens = model.bench, model.lens
+    coarse = model.evaluate(pose, check_range=False)
+    uv = coarse.uv[0]
+    p = bench.sensor.pitch_mm
+    lo, hi = uv.min(axis=0) - 3 * p, uv.max(axis=0) + 3 * p
+    gu = np.linspace(lo[0], hi[0], n_grid)
+    gv = np.linspace(lo[1], hi[1], n_grid)
+    U, V = np.meshgrid(gu, gv, indexing="xy")
+    tr = trace_rays(bench, lens, np.atleast_2d(pose), np.stack([U.ravel(), V.ravel()], 1), kernel=model.kernel)
+    X = tr.xy[0, :, 0].reshape(U.shape)
+    Y = tr.xy[0, :, 1].reshape(U.shape)
+    S = tr.slopes[0].reshape(U.shape + (2,))
+    ok = (tr.status[0] == OK).reshape(U.shape)
+    Xu, Xv = np.gradient(X, gu, gv, axis=(1, 0))
+    Yu, Yv = np.gradient(Y, gu, gv, axis=(1, 0))
+    det = np.abs(Xu * Yv - Xv * Yu)
+    w = 0.5 * bench.laser.beam_diameter_mm
+    I = np.exp(-2.0 * (U**2 + V**2) / (w * w)) / det
+    good = ok.copy()
+    good[1:-1, 1:-1] &= ok[:-2, 1:-1] & ok[2:, 1:-1] & ok[1:-1, :-2] & ok[1:-1, 2:]
+    pts = np.stack([X[good], Y[good]], 1)
+    vals = np.stack([S[..., 0][good], S[..., 1][good], I[good]], 1)
+    return CloughTocher2DInterpolator(pts, vals), coarse
+
+
+def spot_moment_slopes(model: ForwardModel, pose, n_grid: int = 240, M: int = 24):
+    """(slopes (n, 2) rad, lensforge result): the first moment of each lenslet's complete Fraunhofer spot / f.
+
+    By Parseval the spot's first moment equals the irradiance-weighted mean phase gradient over the
+    sub-aperture, here evaluated on the M x M midpoint grid of the independent ray field (no windowing).
+    """
+    interp, res = _ray_field(model, pose, n_grid)
+    p = model.bench.sensor.pitch_mm
+    t = p * ((np.arange(M) + 0.5) / M - 0.5)
+    XL, YL = np.meshgrid(t, t, indexing="xy")
+    c = model.pupil.centres
+    v = interp(c[:, None, 0] + XL.ravel()[None, :], c[:, None, 1] + YL.ravel()[None, :])  # (n, M*M, 3)
+    I = v[..., 2]
+    return np.einsum("nq,nqk->nk", I, v[..., :2]) / I.sum(axis=1)[:, None], res
+
+
+def _potential_basis(xl, yl, deg: int = 6):
+    """(values, d/dx, d/dy) of the monomials x^a y^b, 1 <= a + b <= deg, at the points (columns)."""
+    terms = [(a, n - a) for n in range(1, deg + 1) for a in range(n + 1)]
+    V = np.stack([xl**a * yl**b for a, b in terms], 1)
+    Ax = np.stack([a * xl ** max(a - 1, 0) * yl**b for a, b in terms], 1)
+    Ay = np.stack([b * xl**a * yl ** max(b - 1, 0) for a, b in terms], 1)
+    return V, Ax, Ay
+
+
+def simulate_centroids(model: ForwardModel, pose, n_grid: int = 160, M: int = 24, window_px: int = 27,
+                       sub: int = 2, threshold: float = 0.0, follow: bool = True):
+    """(slopes (n, 2) rad from simulated pixel-window spot centroids, spot displacements (n, 2) mm, lensforge result).
+
+    follow=True centres each camera window on the spot (at f times the sub-aperture's mean ray slope);
+    follow=False uses the lenslet's own fixed window (the spot may leave it).
+    """
+    bench = model.bench
+    sen = bench.sensor
+    p, f = sen.pitch_mm, sen.lenslet_focal_mm
+    lam = bench.laser.wavelength_nm * 1e-6
+    k = 2 * np.pi / lam
+    interp, res = _ray_field(model, pose, n_grid)
+    t = (np.arange(M) + 0.5) / M - 0.5  # midpoint samples over the sub-aperture (units of p)
+    XL, YL = np.meshgrid(t, t, indexing="xy")
+    c = model.pupil.centres
+    v = interp(c[:, None, 0] + p * XL.ravel()[None, :], c[:, None, 1] + p * YL.ravel()[None, :])  # (n, M*M, 3)
+    sx, sy, I = v[..., 0], v[..., 1], v[..., 2]
+    # remove each sub-aperture's mean tilt t0 analytically (its spot sits at f t0); fit the rest as a potential
+    t0 = np.stack([sx.mean(axis=1), sy.mean(axis=1)], 1)
+    V, Ax, Ay = _potential_basis(XL.ravel(), YL.ravel())
+    rhs = np.concatenate([(sx - t0[:, :1]) * p, (sy - t0[:, 1:]) * p], axis=1).T  # (2 M^2, n)
+    coef, *_ = np.linalg.lstsq(np.vstack([Ax, Ay]), rhs, rcond=None)
+    W = (V @ coef).T.reshape(-1, M, M)  # mm of OPD
+    E = np.sqrt(np.clip(I, 0, None)).reshape(-1, M, M) * np.exp(1j * k * W)
+    centre = f * t0 if follow else np.zeros_like(t0)  # camera window centre relative to the lenslet axis
+    cam = ((np.arange(window_px * sub) + 0.5) / sub - 0.5 * window_px) * sen.pixel_mm
+    xi = centre[:, :1] - f * t0[:, :1] + cam[None, :]  # (n, K) camera coords relative to the de-tilted spot
+    eta = centre[:, 1:] - f * t0[:, 1:] + cam[None, :]
+    Fx = np.exp(-2j * np.pi * xi[:, :, None] * (p * t)[None, None, :] / (lam * f))  # (n, K, M)
+    Fy = np.exp(-2j * np.pi * eta[:, :, None] * (p * t)[None, None, :] / (lam * f))
+    A = np.einsum("nim,nml,njl->nij", Fy, E, Fx)  # (n, eta, xi)
+    inten = (np.abs(A) ** 2).reshape(-1, window_px, sub, window_px, sub).sum(axis=(2, 4))  # pixel integration
+    if threshold > 0:
+        inten = np.clip(inten - threshold * inten.max(axis=(1, 2), keepdims=True), 0, None)
+    cpx = (np.arange(window_px) - 0.5 * (window_px - 1)) * sen.pixel_mm
+    tot = inten.sum(axis=(1, 2))
+    disp = np.stack([inten.sum(axis=1) @ cpx / tot, inten.sum(axis=2) @ cpx / tot], 1) + centre
+    return disp / f, disp, res

@@ -1,0 +1,136 @@
+"""Real-bench session end to end: plan -> simulate-session -> calibrate / estimate."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import kstest
+
+from conftest import run_cli_inprocess
+
+from lensforge.calibration.robot import ROBOTS, robot_from_dict
+from lensforge.calibration.session import calibrate, estimate, plan
+from lensforge.fileio import read_toml
+from lensforge.optics.bench import Bench
+from lensforge.optics.pose import invert_poses, matrix_to_pose
+from lensforge.verification.session_sim import NEES_3SIGMA_6DOF, check_sessions, simulate_session
+
+LENS = "extended_polynomial"  # a paper freeform lens: rank 6, fast to trace
+
+
+@pytest.fixture(scope="module")
+def kr10_plan():
+    return plan(LENS, n=8, seed=0)
+
+
+def test_plan_poses_are_reachable_lit_and_predict_z(kr10_plan):
+    p = kr10_plan
+    assert len(p.ids) == 8 and p.joints.shape == (8, 6)
+    lim = np.asarray(p.robot.limits_rad)
+    assert np.all(p.joints >= lim[:, 0]) and np.all(p.joints <= lim[:, 1])
+    assert np.all(p.z_std > 0) and p.z_std[:3].max() < 0.2 and p.z_std[3:].max() < math.radians(0.1)
+    files = p.files()
+    assert {"plan_xyzabc.csv", "plan_4x4.json", "lf_calib.src", "lf_calib.dat", "plan.json"} <= set(files)
+
+
+def test_plan_for_a_second_robot_ur5e():
+    p = plan(LENS, robot="ur5e", n=6, seed=1)
+    assert p.robot.name.startswith("Universal Robots") and len(p.ids) == 6
+    assert "ur5e" in ROBOTS
+
+
+def test_sessions_recover_z_within_reported_3sigma_small():
+    """CI version of the 200-session study (see the slow test): a few seeded sessions."""
+    r = check_sessions(LENS, 4, seed=0, n=8)
+    assert not r["failed"]
+    assert np.all(r["nees"] < NEES_3SIGMA_6DOF * 1.5), r["nees"]
+    assert 0.5 < r["chi2_dof"].mean() < 1.6
+
+
+@pytest.mark.slow
+def test_sessions_recover_z_within_reported_3sigma_200():
+    """>= 99 % of 200 sessions inside the 3-sigma-equivalent ellipsoid, calibrated chi2."""
+    r = check_sessions(LENS, 200, seed=1000)
+    assert len(r["failed"]) <= 2, r["failed"][:3]
+    assert r["inside_3sigma"] >= 0.99
+    assert 0.85 < r["nees"].mean() / 6 < 1.15
+    assert abs(r["chi2_dof"].mean() - 1.0) < 0.1
+    assert kstest(r["p_values"], "uniform").pvalue > 1e-3
+
+
+def test_noise_free_session_is_exact(kr10_plan):
+    """Sensor and robot noise 1e4 times smaller: the reported 1-sigma and the Z error shrink with it."""
+    bench = Bench.default().replace(noise={"slope_sigma_urad": 8e-4})
+    d = read_toml(ROBOTS["kr10_r1100_sixx"], "robot")
+    d["repeatability_mm"] = 2e-6
+    robot = robot_from_dict(d)
+    s = simulate_session(LENS, tolerances=None, seed=5, bench=bench, robot=robot, n=8)
+    from lensforge.calibration.formats import PoseTable, WfsData
+
+    wfs = WfsData(s.wfs_ids, s.zernike_thorlabs, 4, s.header, "wfs")
+    poses = PoseTable(s.ids, s.A_recorded, "poses")
+    r = calibrate(LENS, wfs, poses, bench=bench, robot=robot)
+    e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
+    sd = np.sqrt(np.diag(r.handeye.cov_Z))
+    assert sd[:3].max() < 1e-4 and sd[3:].max() < 1e-6  # ~1e4 below the default-noise 1-sigma
+    assert np.all(np.abs(e) < 5 * sd)  # and the error follows it down: no bias at the 1e-6 mm level
+    assert 0.3 < r.chi2_dof < 2.0
+
+
+class _Res:
+    def __init__(self, code, out, err):
+        self.returncode, self.stdout, self.stderr = code, out, err
+
+
+def test_cli_simulate_calibrate_estimate(tmp_path, monkeypatch, capsys):
+    def run_cli(*args):
+        return _Res(*run_cli_inprocess(monkeypatch, capsys, *args))
+
+    sess, cal = tmp_path / "s", tmp_path / "c"
+    res = run_cli("simulate-session", LENS, "-t", "none", "--seed", "2", "-n", "8", "-o", str(sess))
+    assert res.returncode == 0, res.stderr
+    assert {p.name for p in sess.iterdir()} == {"robot_poses.csv", "wfs_zernike.csv", "truth.json"}
+    res = run_cli("calibrate", LENS, "--measurements", str(sess / "wfs_zernike.csv"),
+                  "--robot-poses", str(sess / "robot_poses.csv"), "-o", str(cal), "--json")
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    assert set(out) == {"schema_version", "Z", "X", "chi2_dof", "poses_used", "poses_rejected"}
+    for k in ("Z", "X"):
+        assert set(out[k]) == {"matrix", "xyzabc", "quaternion_wxyz", "std", "cov"}
+        assert set(out[k]["std"]) == {"tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg"}
+    truth = json.loads((sess / "truth.json").read_text())
+    Zt, Ze = np.array(truth["Z"]), np.array(out["Z"]["matrix"])
+    std = out["Z"]["std"]
+    assert np.all(np.abs(Ze[:3, 3] - Zt[:3, 3]) < 5 * np.array([std["tx_mm"], std["ty_mm"], std["tz_mm"]]))
+    assert {p.name for p in cal.iterdir()} == {"calibration.json", "easy_handeye.yaml", "summary.txt", "residuals.png"}
+    # one lens pose from one row
+    res = run_cli("estimate", LENS, "--measurement", str(sess / "wfs_zernike.csv"), "--pose", "1", "--json")
+    assert res.returncode == 0, res.stderr
+    e = json.loads(res.stdout)
+    assert e["pose_id"] == "1" and np.array(e["cov"]).shape == (6, 6)
+    true_pose = np.array(truth["lens_poses"]["1"])
+    est = np.array([e["pose"][k] for k in ("tx_mm", "ty_mm", "tz_mm", "rx_rad", "ry_rad", "rz_rad")])
+    d = est - true_pose
+    assert float(d @ np.linalg.solve(np.array(e["cov"]), d)) < 40.0  # chi2(6) at 1e-6
+
+
+def test_calibrate_reports_missing_poses(tmp_path, kr10_plan):
+    s = simulate_session(LENS, tolerances=None, seed=3, session_plan=kr10_plan)
+    from lensforge.calibration.formats import PoseTable, WfsData
+
+    keep = [i for i in range(len(s.wfs_ids)) if s.wfs_ids[i] != "2"]
+    wfs = WfsData(tuple(s.wfs_ids[i] for i in keep), s.zernike_thorlabs[keep], 4, s.header, "wfs.csv")
+    r = calibrate(LENS, wfs, PoseTable(s.ids, s.A_recorded, "poses.csv"))
+    assert "2" not in r.poses_used
+    assert any(x["pose"] == "2" and "no WFS measurement" in x["reason"] for x in r.poses_rejected)
+
+
+def test_estimate_selects_a_row(kr10_plan):
+    s = simulate_session(LENS, tolerances=None, seed=4, session_plan=kr10_plan)
+    from lensforge.calibration.formats import WfsData
+
+    wfs = WfsData(s.wfs_ids, s.zernike_thorlabs, 4, s.header, "wfs.csv")
+    r = estimate(LENS, wfs, pose_id=s.wfs_ids[0])
+    k = s.ids.index(s.wfs_ids[0])
+    assert np.abs(r["estimate"].pose - s.x_true[k]).max() < 0.05
