@@ -18,7 +18,7 @@ from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg
 def estimate_study(
     lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
     trials: int = typer.Option(100, "--trials", help="estimates per lens"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS) + " (lm: least squares; ukf: the paper's baseline)"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: lm (least squares) | ukf (the paper's baseline); the registry ESTIMATORS in calibration/pose_estimation.py"),
     ukf_repeats: int = typer.Option(12, "--ukf-repeats", help="ukf: updates on the same measurement (paper: 12)"),
     seed: int = typer.Option(0, "--seed", help="random seed (SeedSequence; same trials for every lens)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
