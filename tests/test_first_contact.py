@@ -105,7 +105,7 @@ def test_lens_labels_tell_paper_lenses_from_design_files(tmp_path, bench):
     from lensforge.optics.lens import resolve_lens
 
     f = tmp_path / "zernike.json"
-    f.write_text(json.dumps({"lens": lf.paper_lens("zernike").to_dict()}))
+    f.write_text(json.dumps({"schema_version": 1, "kind": "lensforge.design", "lens": lf.paper_lens("zernike").to_dict()}))
     assert resolve_lens("zernike").label != resolve_lens(str(f)).label == "zernike"
 
 
