@@ -31,7 +31,7 @@ from .commands.study import budget_cmd, study_cmd
 from .errors import LensforgeError
 from .interrupts import Interrupted, hard_exit, sigint_guard
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, rich_markup_mode=None,
                   help="Design, export and verify freeform lenses for Shack-Hartmann pose estimation.")
 
 _COMMANDS = {  # command name -> function, in the order of ``lensforge --help``

@@ -40,7 +40,7 @@ def test_study_summary(small_study):
     assert np.isnan(ss["rmse_over_crlb"]["rz"])
     assert np.isfinite(ss["rmse_over_crlb"]["rx"])
     table = format_table(small_study)
-    assert "spherical" in table and "n/a" in table
+    assert "spherical" in table and "unobs." in table  # the one spelling of an unobservable DOF
     d = study_to_dict(small_study, seed=3)
     assert d["schema_version"] == 1
     json.dumps(d, allow_nan=False)  # NaN became null
@@ -96,7 +96,7 @@ def test_cli_estimate_study_json(tmp_path):
              "--json")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
-    assert [x["lens"] for x in d["lenses"]] == ["polynomial", "spherical"]
+    assert [x["lens"] for x in d["lenses"]] == ["paper polynomial", "paper spherical"]
     assert d["trials"] == 3 and d["method"] == "lm"
     assert (tmp_path / "estimate_study.png").exists() and (tmp_path / "estimate_study.json").exists()
 

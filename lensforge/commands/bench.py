@@ -18,14 +18,11 @@ import numpy as np
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from ..calibration.formats import PLAN_WRITERS, write_bundle
-from ..calibration.robot import ROBOTS
-from ..calibration.session import CALIBRATION_METHODS, calibrate, estimate, frame_dict, plan
 from ..optics.bench import load_bench
-from ..optics.pose import DOF_NAMES
 from ._common import emit_json, info
 
-_ROBOT_HELP = f"robot model: {', '.join(ROBOTS)} or a robot TOML (default kr10_r1100_sixx)"
+# help texts name the registries without importing them (scipy): `lensforge --help` stays fast
+_ROBOT_HELP = "robot model: a name of calibration.robot.ROBOTS (kr10_r1100_sixx, ur5e) or a robot TOML (default kr10_r1100_sixx)"
 
 
 def _bench(path: Optional[str]):
@@ -53,7 +50,7 @@ def plan_cmd(
     seed: int = typer.Option(0, "--seed", help="seed of the candidate poses"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     formats_: str = typer.Option("auto", "--formats",
-                                 help=f"comma list of {', '.join(PLAN_WRITERS)}; auto = csv,json (+krl for a KUKA)"),
+                                 help="comma list of calibration.formats.PLAN_WRITERS names; auto = csv,json (+krl for a KUKA)"),
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ):
@@ -62,6 +59,9 @@ def plan_cmd(
     Writes plan_xyzabc.csv (pose,X,Y,Z,A,B,C: mm, deg, KUKA R = Rz(A) Ry(B) Rx(C)),
     plan_4x4.json, for a KUKA lf_calib.src/.dat (KRL E6POS points; $BASE = robot root,
     $TOOL = flange) and plan.json (predicted Z 1-sigma)."""
+    from ..calibration.formats import write_bundle
+    from ..calibration.session import plan
+
     p = plan(design, bench=_bench(bench), robot=robot, n=n, seed=seed)
     fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
     if fm == ("auto",):
@@ -86,7 +86,7 @@ def calibrate_cmd(
                                      help="flange poses: CSV pose,X,Y,Z,A,B,C (mm/deg), CSV pose,x,y,z,qw,qx,qy,qz "
                                           "with '# units: m|mm', or JSON 4x4"),
     robot: Optional[str] = typer.Option(None, "--robot", help=_ROBOT_HELP),
-    method: str = typer.Option("two-stage", "--method", help=f"calibration method: {', '.join(CALIBRATION_METHODS)}"),
+    method: str = typer.Option("two-stage", "--method", help="calibration method: a name of calibration.session.CALIBRATION_METHODS (default two-stage)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(Path("exports/calibration"), "-o", "--out", help="output folder"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
@@ -96,6 +96,9 @@ def calibrate_cmd(
 
     Writes calibration.json, easy_handeye.yaml (ROS), summary.txt and residuals.png."""
     with _progress(not (no_progress or json_out), "estimating lens poses") as cb:
+        from ..calibration.formats import write_bundle
+        from ..calibration.session import calibrate
+
         res = calibrate(design, measurements, robot_poses, bench=_bench(bench), robot=robot, method=method,
                         progress=cb)
     paths = write_bundle(out, res.files())
@@ -113,6 +116,9 @@ def estimate_cmd(
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
 ):
     """Estimate one lens pose (relative to its nominal placement) with its covariance."""
+    from ..calibration.session import estimate
+    from ..optics.pose import DOF_NAMES
+
     r = estimate(design, measurement, bench=_bench(bench), pose_id=pose)
     e = r["estimate"]
     std = e.std
@@ -140,6 +146,9 @@ def simulate_session_cmd(
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ):
     """Write the files of a simulated bench session (robot_poses.csv, wfs_zernike.csv, truth.json)."""
+    from ..calibration.formats import write_bundle
+    from ..calibration.session import frame_dict
+
     from ..verification.session_sim import simulate_session
 
     tol = None if tolerances.lower() == "none" else tolerances

@@ -17,11 +17,6 @@ from pathlib import Path
 import typer
 from rich.console import Console
 
-from ..design.design_file import save_design
-from ..design.optimize import optimize_design
-from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
-from ..optics.bench import Bench
-from ..verification.study import verify
 from ..fileio import check_output, staged_dir
 from ._common import check_seed
 from .evaluate import evaluate_lenses, metrics_table
@@ -33,6 +28,13 @@ def demo(
     seed: int = typer.Option(0, "--seed", help="seed of the design and the study"),
 ):
     """Evaluate the paper lenses, design a Zernike lens, export it, verify it as built."""
+    from ..design.design_file import save_design
+    from ..design.optimize import DEFAULT_MAX_EVALS, optimize_design
+    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
+    from ..optics.bench import Bench
+    from ..verification.statistics import format_counts
+    from ..verification.study import verify
+
     console = Console(stderr=True, width=160)
     check_seed(seed)
     check_output(out, folder=True, need_mb=50)
@@ -45,11 +47,12 @@ def demo(
 
         console.rule("1. The paper's lenses on the default bench")
         rows = evaluate_lenses(["spherical", "polynomial", "extended_polynomial", "zernike"])
+        console.print(metrics_table(rows, title="The paper's four lenses (scaled, noise-whitened S)"))
 
         console.rule("2. Design a Zernike freeform lens (CMA-ES, A-optimal criterion, Noll 1..8 + base curvatures)")
         t0 = time.perf_counter()
         design = optimize_design(bench, model="zernike", method="cmaes", seed=seed, criterion="A", free="full",
-                                 max_evals=150 if quick else 800)
+                                 max_evals=150 if quick else DEFAULT_MAX_EVALS["cmaes"])
         design_path = save_design(design, work / "zernike.json")
         console.print(f"designed in {time.perf_counter() - t0:.1f} s -> {st.final(design_path)}")
         rows.append({"lens": f"lensforge zernike ({design_path.name})", "description": "",
@@ -76,6 +79,7 @@ def demo(
                       f"failure rate {s['failure_rate']:.0%}")
         console.print(f"  sensor pose Z translation error: {fmt(s['translation_mm'], 'mm')}")
         console.print(f"  sensor pose Z rotation error:    {fmt(s['rotation_deg'], 'deg')}")
+        console.print(f"  {format_counts(s)}")
         console.print(f"  target {s['target']['translation_mm']} mm / {s['target']['rotation_deg']} deg at the "
                       f"{s['percentile']:.0f}th percentile met: {'yes' if s['meets_target'] else 'no'}")
         for stale in ("demo-study.sqlite-wal", "demo-study.sqlite-shm"):  # a killed earlier demo's journal

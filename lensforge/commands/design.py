@@ -9,16 +9,8 @@ from typing import List, Optional
 import typer
 from rich.console import Console
 
-from ..design.compare import compare_rows, format_table
-from ..design.constraints import Constraints
-from ..design.design_file import load_design, save_design
-from ..design.optimize import METHODS, optimize_design
-from ..design.robust import RobustSpec
 from ..errors import ConfigError
 from ..fileio import check_output, staged_dir
-from ..manufacturing.tolerances import load_tolerances
-from ..optics.lens import resolve_lens
-from ..plots import design_plots
 from ._common import check_seed, emit_json, info, load_bench_arg
 
 
@@ -35,11 +27,11 @@ def _weights(text: str) -> tuple[float, float]:
 
 def design(
     model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
-    method: str = typer.Option("nelder-mead", "--method", help=" | ".join(METHODS)),
+    method: str = typer.Option("cmaes", "--method", help="optimiser: cmaes (CMA-ES, default) | nelder-mead | pso | ga (the registry in design/optimize.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
-    criterion: str = typer.Option("J", "--criterion", help="J (paper) | D (D-optimal) | A (A-optimal)"),
+    criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min)"),
     weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
-    free: Optional[str] = typer.Option(None, "--free", help="preset (paper, full, zernike: base) or comma list of parameter names"),
+    free: Optional[str] = typer.Option(None, "--free", help="which lens parameters the optimiser may change: 'full' (default for zernike: thickness, both base curvatures, Noll 1-8 per surface), 'paper' (the paper's set), 'base' (zernike only: paper set + base curvatures), or a comma list of names such as thickness,front.coefficients[3]; default: full for zernike, paper for the other models"),
     bounds: Optional[str] = typer.Option(None, "--bounds", help="overrides 'name=lo:hi,...', e.g. thickness=4:8"),
     max_evals: Optional[int] = typer.Option(None, "--max-evals", help="cost evaluations (default per method)"),
     start: str = typer.Option("paper", "--start", help="paper (template vector if feasible) | random"),
@@ -64,6 +56,13 @@ def design(
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ):
     """Optimise a freeform lens and write its design file."""
+    from ..design.compare import compare_rows, feasibility_notes, format_table
+    from ..design.constraints import Constraints
+    from ..design.design_file import save_design
+    from ..design.optimize import optimize_design
+    from ..design.robust import RobustSpec
+    from ..manufacturing.tolerances import load_tolerances
+
     b = load_bench_arg(bench)
     spec = None
     if robust is not None:
@@ -92,7 +91,10 @@ def design(
             r = d.robust
             info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "
                  f"(seed {r['seed']}, {r['n_failed']} unmeasurable); nominal {r['nominal']:.5g}")
-        Console(stderr=True, width=200).print(format_table(compare_rows([d], b, cons)))
+        rows = compare_rows([d], b, cons)
+        Console(stderr=True, width=200).print(format_table(rows))
+        for note in feasibility_notes(rows):
+            info(f"infeasible: {note}")
 
 def plot(
     design_file: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
@@ -100,6 +102,10 @@ def plot(
     json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
 ):
     """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
+    from ..design.design_file import load_design
+    from ..optics.lens import resolve_lens
+    from ..plots import design_plots
+
     r = resolve_lens(design_file)
     obj, stem = ((load_design(design_file), Path(design_file).stem) if "model" in r.data  # a design file:
                  else (r.lens, r.label.replace(" ", "_")))  # its plots show the design's parameters too
@@ -120,9 +126,14 @@ def compare(
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
 ):
     """Table-1 analogue: all lenses evaluated on one bench."""
+    from ..design.compare import compare_rows, feasibility_notes, format_table
+    from ..design.constraints import Constraints
+
     b = load_bench_arg(bench)
     rows = compare_rows(items, b, Constraints(range_mm=range_mm, range_rad=math.radians(range_deg)))
     if json_out:
         emit_json({"schema_version": 1, "rows": rows})
     else:
         Console(stderr=True, width=220).print(format_table(rows))
+        for note in feasibility_notes(rows):
+            info(f"infeasible: {note}")

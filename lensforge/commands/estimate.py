@@ -9,27 +9,29 @@ from typing import List, Optional
 
 import typer
 
-from ..calibration.pose_estimation import ESTIMATORS
 from ..errors import ConfigError
 from ..fileio import check_output, staged_dir, write_atomic
-from ..optics.lens import resolve_lens
-from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
-from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
+from ..progress import progress_bar
 from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg
 
 
 def estimate_study(
     lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
     trials: int = typer.Option(100, "--trials", help="estimates per lens"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS) + " (lm: least squares; ukf: the paper's baseline)"),
+    method: str = typer.Option("lm", "--method", help="pose estimator: lm (least squares) | ukf (the paper's baseline); the registry ESTIMATORS in calibration/pose_estimation.py"),
     ukf_repeats: int = typer.Option(12, "--ukf-repeats", help="ukf: updates on the same measurement (paper: 12)"),
     seed: int = typer.Option(0, "--seed", help="random seed (SeedSequence; same trials for every lens)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     out: Path = typer.Option(Path("exports/estimate"), "-o", "--out", help="output folder (JSON, per-trial CSV, box plot PNG)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Estimate each lens's pose from noisy measurements TRIALS times; report error
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
+    from ..calibration.pose_estimation import ESTIMATORS
+    from ..optics.lens import resolve_lens
+    from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
+
     # ConfigError, not typer.Exit: under main()'s standalone_mode=False a typer.Exit
     # comes back as a return value and the exit status is lost
     if method not in ESTIMATORS:
@@ -40,16 +42,14 @@ def estimate_study(
     if trials > MAX_TRIALS:
         raise ConfigError(f"--trials: {trials} is over the limit of {MAX_TRIALS} estimates per lens")
     opts = {"ukf_repeats": ukf_repeats} if method == "ukf" else {}
-    loaded = []
-    for arg in lenses:  # every input validated before any work
-        r = resolve_lens(arg)
-        loaded.append((arg, r.lens, load_bench_arg(bench, r)))
+    loaded = [resolve_lens(arg) for arg in lenses]  # every input validated before any work
+    benches = [load_bench_arg(bench, r) for r in loaded]
     check_output(out, folder=True, need_mb=5)
     results = []
-    for arg, lens, b in loaded:
-        name = Path(arg).stem if Path(arg).suffix else arg
-        info(f"{name}: {trials} estimates ({method}) ...")
-        results.append(study_lens(b, lens, name, trials, method, seed, **opts))
+    with progress_bar(trials * len(lenses), "estimates", not (no_progress or json_out)) as bar:
+        for r, b in zip(loaded, benches):
+            bar.describe(f"{r.label}: {method} estimates")
+            results.append(study_lens(b, r.lens, r.label, trials, method, seed, tick=bar.advance, **opts))
     meta = {"method": method, "trials": trials, "seed": seed,
             **({"ukf_repeats": ukf_repeats} if method == "ukf" else {})}
     with staged_dir(out) as st:  # JSON, CSV and PNG together or not at all
@@ -64,15 +64,20 @@ def scenario(
     lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
     design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
     runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: " + " | ".join(ESTIMATORS)),
+    method: str = typer.Option("lm", "--method", help="pose estimator: lm | ukf (the registry ESTIMATORS in calibration/pose_estimation.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """The paper's calibration procedure in simulation: 12 convergence poses, 12
     calibration poses, lens poses estimated from noisy measurements, hand-eye
     solved with the estimator covariances; Z error vs its predicted bound."""
+    from ..calibration.pose_estimation import ESTIMATORS
+    from ..optics.lens import resolve_lens
+    from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
+
     if design not in ("random", "oed", "both"):
         raise ConfigError(f"--poses: {design!r} is not random, oed or both")
     if method not in ESTIMATORS:
@@ -88,8 +93,9 @@ def scenario(
     check_output(Path(out) / "scenario.json", folder=False)
     cfg = ScenarioConfig(estimator=method)
     designs = ("random", "oed") if design == "both" else (design,)
-    info(f"scenario: {runs} calibrations x {', '.join(designs)} poses ...")
-    rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed)
+    with progress_bar(runs * len(designs), f"calibrations ({', '.join(designs)} poses)",
+                      not (no_progress or json_out)) as bar:
+        rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed, tick=bar.advance)
     rep = {"schema_version": 1, "lens": lens, **rep}
     path = write_atomic(Path(out) / "scenario.json", json.dumps(rep, indent=2, allow_nan=False))
     if json_out:

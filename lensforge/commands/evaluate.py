@@ -8,15 +8,12 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from ..optics.lens import resolve_lens
-from ..optics.pose import DOF_NAMES
-from ..optics.sensitivity import metrics
-from ..optics.shack_hartmann import ForwardModel
+from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns
 from ._common import emit_json, load_bench_arg
 
 
 _NO_METRICS = {"rank": None, "kappa": None, "sigma_min": None, "J": None, "unobservable": None,
-               "crlb_std": {k: None for k in [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]}}
+               "crlb_std": {k: None for k in ("tx_um", "ty_um", "tz_um", "rx_urad", "ry_urad", "rz_urad")}}
 
 
 def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dict]:
@@ -25,6 +22,10 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
     Each row carries ``sensor_range`` at the nominal pose (ok, max_slope_mrad, lenslets_out, ...);
     a lens out of the sensor's range gets null metrics (the sensor cannot measure it).
     """
+    from ..optics.lens import resolve_lens
+    from ..optics.sensitivity import metrics
+    from ..optics.shack_hartmann import ForwardModel
+
     rows = []
     for name in names:
         r = resolve_lens(name)
@@ -32,8 +33,8 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
         bench = load_bench_arg(bench_path, r)
         sr = ForwardModel(bench, lens).sensor_range()  # nominal pose; metrics need it in range
         m = metrics(bench, lens) if sr.ok else None
-        rows.append({"lens": name, "description": lens.name, **(m.to_dict() if m else _NO_METRICS),
-                     "sensor_range": sr.to_dict()})
+        rows.append({"lens": name, "label": r.label, "description": lens.name,
+                     **(m.to_dict() if m else _NO_METRICS), "sensor_range": sr.to_dict()})
     return rows
 
 
@@ -49,17 +50,12 @@ def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, n
     def fmt(v, spec=".3g"):
         return "inf" if v is None else format(v, spec)
 
-    t = Table(title=title)
-    for col in (["lens", "rank", "kappa", "sigma_min", "J"]
-                + [f"CRLB {d} [{'um' if i < 3 else 'urad'}]" for i, d in enumerate(DOF_NAMES)]
-                + ["unobservable", "sensor range"]):
+    t = Table(title=title, caption=UNOBSERVABLE_NOTE)
+    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + crlb_columns() + ["sensor range"]:
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
-        std = r["crlb_std"]
-        keys = [f"{d}_um" for d in DOF_NAMES[:3]] + [f"{d}_urad" for d in DOF_NAMES[3:]]
-        t.add_row(r["lens"], fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
-                  *[fmt(std[k]) for k in keys], ", ".join(r.get("unobservable") or []) or "-",
-                  _range_text(r.get("sensor_range")))
+        t.add_row(r.get("label", r["lens"]), fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
+                  *crlb_cells(r["crlb_std"], unobservable=r.get("unobservable") or ()), _range_text(r.get("sensor_range")))
     return t
 
 

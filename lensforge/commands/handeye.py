@@ -26,9 +26,6 @@ from typing import Optional
 import numpy as np
 import typer
 
-from ..calibration.formats import easy_handeye_yaml, read_robot_poses, write_bundle
-from ..calibration.handeye import OBS_LIMITS, solve_handeye
-from ..calibration.session import frame_dict
 from ..errors import ConfigError
 from ..fileio import dumps_json, read_json
 from ..schema import POSE_TRANSLATION, Num, check_header, number, number_array
@@ -124,6 +121,8 @@ def load_poses(path: str | Path) -> dict:
 
 def load_pose_files(robot_poses: Path, lens_poses: Path) -> tuple[np.ndarray, np.ndarray, list]:
     """A and B (mm) matched by id from two pose files; ids in one file only are left out."""
+    from ..calibration.formats import read_robot_poses
+
     ta, tb = read_robot_poses(robot_poses), read_robot_poses(lens_poses)
     common = [i for i in ta.ids if i in set(tb.ids)]
     if len(common) < 3:
@@ -145,14 +144,19 @@ def handeye_cmd(
     allow_degenerate: bool = typer.Option(
         False, "--allow-degenerate",
         help="solve degenerate motion anyway: its unobservable directions get a null 1-sigma"),
-    obs_limit_mm: float = typer.Option(OBS_LIMITS[0], "--obs-limit-mm",
+    obs_limit_mm: float = typer.Option(1.0, "--obs-limit-mm",  # = calibration.handeye.OBS_LIMITS (lazy import)
                                        help="predicted 1-sigma (mm) beyond which a direction is reported "
                                             "unobservable (solved and warned, never refused)"),
-    obs_limit_rad: float = typer.Option(OBS_LIMITS[1], "--obs-limit-rad",
+    obs_limit_rad: float = typer.Option(0.01, "--obs-limit-rad",
                                         help="the same for rotations (rad)"),
     plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
 ):
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
+    # imported here so that `lensforge --help` stays fast (no scipy at CLI import)
+    from ..calibration.formats import easy_handeye_yaml, write_bundle
+    from ..calibration.handeye import solve_handeye
+    from ..calibration.session import frame_dict
+
     if poses is not None and (robot_poses or lens_poses):
         raise ConfigError("handeye: give POSES.json or --robot-poses with --lens-poses, not both")
     if poses is not None:

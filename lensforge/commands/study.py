@@ -9,16 +9,13 @@ import typer
 
 from ..errors import ConfigError
 from ..fileio import check_output, dumps_json, staged_dir, write_atomic
-from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
 from ..optics.bench import load_bench
-from ..verification.budget import sensitivity_analysis, tolerance_budget
-from ..verification.runner import dask_client
-from ..verification.study import StudyConfig, verify
-from ..verification.study_plots import plot_budget, plot_error_histograms, plot_sensitivity
 from ._common import MAX_TRIALS, check_seed, emit_json, info
 
 
 def _tolerances(path):
+    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+
     if path is None:
         return load_tolerances(DEFAULT_TOLERANCES_FILE) if Path(DEFAULT_TOLERANCES_FILE).exists() else Tolerances()
     return load_tolerances(path)
@@ -70,6 +67,10 @@ def study_cmd(
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
+    from ..verification.statistics import format_counts
+    from ..verification.study import StudyConfig, verify
+    from ..verification.study_plots import plot_error_histograms
+
     tol = _tolerances(tolerances)
     _check_sizes(seed, lenses, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
@@ -91,6 +92,7 @@ def study_cmd(
     _print_errors(s)
     info(f"  target {target_mm} mm / {target_deg} deg at p{s['percentile']:g}: "
          f"{'met' if s['meets_target'] else 'NOT met'}")
+    info(f"  {format_counts(s)}")
     if s["failures"]:
         info(f"  failures: {s['failures']}")
     if calibration == "joint":
@@ -103,6 +105,20 @@ def study_cmd(
     info(f"wrote {out / 'store.sqlite'}, {out / 'summary.json'}, {out / 'errors.png'}")
     if json_out:
         emit_json(d)
+
+def budget_advice(bud) -> list[str]:
+    """What the budget means, in words: the limiting tolerance, or why there is none and what to change."""
+    p = f"p{bud.percentile:g}"
+    if bud.noise_ratio is None or bud.noise_ratio > 1.0:
+        how = ("fails too often" if bud.noise_ratio is None
+               else f"misses it {bud.noise_ratio:.3g}x")
+        return [f"no tolerance fits: even a perfect lens (noise only) {how} at {p}, so every max scale is 0.",
+                "Budget relative to the noise-only error instead (--relative-to-noise 2 allows twice it), "
+                "or loosen --target-mm / --target-deg."]
+    if bud.dominant is None:
+        return ["no tolerance limits the calibration within the searched range (up to 1000x its given size)."]
+    return [f"dominant: {bud.dominant} (the tolerance with the smallest max scale; tighten it first)."]
+
 
 def budget_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
@@ -120,20 +136,27 @@ def budget_cmd(
     out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
     calibration: str = typer.Option("joint", "--calibration", help="two-stage or joint (see `lensforge study`)"),
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
     """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
+    from ..verification.budget import sensitivity_analysis, tolerance_budget
+    from ..verification.runner import dask_client
+    from ..verification.study import StudyConfig
+    from ..verification.study_plots import plot_budget, plot_sensitivity
+
     tol = _tolerances(tolerances)
     _check_sizes(seed, lenses, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = load_bench(bench) if bench else None
     check_output(out, folder=True, need_mb=10)
     with dask_client(workers, scheduler) as cl:
-        kw = dict(config=cfg, client=cl, workers=0)
+        kw = dict(config=cfg, client=cl, workers=0, progress=not (no_progress or json_out))
         bud = tolerance_budget(design, tol, target_mm=target_mm, target_deg=target_deg, n_lenses=lenses,
                                seed=seed, bench=b, relative_to_noise=relative, **kw)
         cfg2 = StudyConfig(n_poses=poses, target_mm=bud.target_mm, target_deg=bud.target_deg,
                            calibration=calibration)
-        sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0)
+        sens = sensitivity_analysis(design, tol, lenses, seed, b, config=cfg2, client=cl, workers=0,
+                                    progress=kw["progress"])
     d = {"schema_version": 1, "design": str(design), "calibration": calibration, **bud.to_dict(),
          "sensitivity": [r.to_dict() for r in sens], "tolerances": tol.to_dict()}
     rows = []
@@ -155,7 +178,13 @@ def budget_cmd(
         mv = "-" if r.max_value is None else f"{r.max_value:.3g}"
         gv = "-" if r.given_value is None else f"{r.given_value:.3g}"
         info(f"  {r.component:<10} {gv:>12} {ms:>10} {mv:>12}  {r.unit} / {r.status}")
-    info(f"  dominant: {bud.dominant}")
+    for line in budget_advice(bud):
+        info(f"  {line}")
+    info(f"sensitivity ({lenses} as-built lenses per row, each tolerance alone at its given size):")
+    info(f"  {'component':<10} {'p95 Z rotation':>16} {'p95 Z translation':>18} {'failed lenses':>14}")
+    for r in sens:
+        info(f"  {r.component:<10} {_fmt(r.p95_rot_deg, 'deg'):>16} {_fmt(r.p95_trans_mm, 'mm'):>18} "
+             f"{round(r.failure_rate * lenses):>7} of {lenses}")
     info(f"wrote {out / 'budget.json'}, {out / 'budget.png'}, {out / 'sensitivity.png'}")
     if json_out:
         emit_json(d)

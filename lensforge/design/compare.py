@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..display import UNOBSERVABLE_NOTE, crlb_cells, crlb_columns, fmt_bound
 from ..errors import LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens, resolve_lens
@@ -24,7 +25,7 @@ from ..optics.shack_hartmann import ForwardModel
 from .constraints import Constraints, check_design
 from .design_file import Design, load_design, metrics_dict
 
-__all__ = ["CompareEntry", "resolve_entry", "compare_rows", "format_table"]
+__all__ = ["CompareEntry", "resolve_entry", "compare_rows", "format_table", "feasibility_notes"]
 
 
 @dataclass(frozen=True)
@@ -63,10 +64,12 @@ def compare_rows(entries, bench: Bench | None = None, constraints: Constraints |
             md = metrics_dict(m)
             row.update({k: md[k] for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
             row["crlb_std"] = md["crlb_std"]
+            row["unobservable"] = md.get("unobservable", [])  # DESIGN.md's statistical rule (Metrics.observability)
             row["error"] = None
         except LensforgeError as err:
             row.update({k: None for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
             row["crlb_std"] = None
+            row["unobservable"] = list(DOF_NAMES)
             row["error"] = str(err)
         try:
             row["sensor_range"] = ForwardModel(bench, e.lens).sensor_range().to_dict()
@@ -78,9 +81,11 @@ def compare_rows(entries, bench: Bench | None = None, constraints: Constraints |
             f = check_design(bench, e.lens, cons)
             row["feasible"] = f.ok
             row["violations"] = [v.constraint for v in f.violations]
+            row["violation_messages"] = [v.message for v in f.violations]
         except LensforgeError as err:
             row["feasible"] = False
-            row["violations"] = [str(err)]
+            row["violations"] = ["error"]
+            row["violation_messages"] = [str(err)]
         d = e.design
         row["method"] = d.method if d else None
         row["seed"] = d.seed if d else None
@@ -115,20 +120,26 @@ def format_table(rows: list[dict]):
     """A rich Table of the rows (print it with a stderr Console)."""
     from rich.table import Table
 
-    t = Table(title="Lens comparison on one bench (metrics of the scaled, whitened S; CRLB std in um / urad)")
-    cols = ["lens", "rank", "kappa", "sigma_min", "J", "D", "A"] + [
-        f"{n} {'um' if i < 3 else 'urad'}" for i, n in enumerate(DOF_NAMES)] + [
-        "max slope mrad", "measurable", "feasible", "evals", "s"]
+    t = Table(title="Lens comparison on one bench (metrics of the scaled, whitened S; CRLB 1-sigma)",
+              caption=UNOBSERVABLE_NOTE)
+    cols = (["lens", "rank", "kappa", "sigma_min", "J", "D", "A"] + crlb_columns("")
+            + ["max slope (mrad)", "measurable", "feasible", "evals", "time (s)"])
     for c in cols:
         t.add_column(c, justify="left" if c == "lens" else "right")
     for r in rows:
-        std = r.get("crlb_std") or {}
-        keys = [f"{n}_um" for n in DOF_NAMES[:3]] + [f"{n}_urad" for n in DOF_NAMES[3:]]
+        lost = r["rank"] is not None and r["rank"] < len(DOF_NAMES)  # D and A hold a rank penalty, not a value
         t.add_row(
-            r["label"], _fmt(r["rank"], "d"), _fmt(r["kappa"]), _fmt(r["sigma_min"]), _fmt(r["J"]), _fmt(r["D"]),
-            _fmt(r["A"]), *[_fmt(std.get(k), ".3g") if std else "-" for k in keys],
+            r["label"], _fmt(r["rank"], "d"), _fmt(r["kappa"]), _fmt(r["sigma_min"]), _fmt(r["J"]),
+            fmt_bound(r["D"], lost, ".4g"), fmt_bound(r["A"], lost, ".4g"),
+            *crlb_cells(r.get("crlb_std"), unobservable=r.get("unobservable", ())),
             _fmt((r.get("sensor_range") or {}).get("max_slope_mrad"), ".3g"), _measurable(r),
             "yes" if r["feasible"] else "no: " + ",".join(r["violations"]),
             _fmt(r["n_evals"], "d"), _fmt(r["wall_time_s"], ".1f"),
         )
     return t
+
+
+def feasibility_notes(rows: list[dict]) -> list[str]:
+    """One line per violated constraint of each row: what it means and what to change."""
+    return [f"{r['label']}: {name}: {msg}" for r in rows if not r.get("feasible", True)
+            for name, msg in zip(r["violations"], r.get("violation_messages", r["violations"]))]

@@ -253,8 +253,10 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
         else:
             why = f"pupil under-filled (min irradiance {irr[worst].min():.3g} < threshold {thr:.3g})"
         vs.append(Violation("pupil_lit", float(len(bad)), 0.0,
-                            f"SH pupil not fully lit at {len(bad)} of {len(P)} working-range poses, first at {where}: "
-                            f"{why}; reduce surface power/tilt or shrink the working range (constraints.range_mm/range_rad)"))
+                            f"SH pupil not fully lit at {len(bad)} of {len(P)} working-range poses (the beam leaves "
+                            f"part of the sensor's Zernike pupil dark there, so those poses cannot be measured), first "
+                            f"at {where}: {why}; reduce surface power/tilt or shrink the working range "
+                            f"(constraints.range_mm/range_rad; CLI --range-mm/--range-deg)"))
         pen += 1.0 + not_ok + short
     elif bench.sensor.spot_assignment != "none":
         worst_use = np.max(use, axis=1)

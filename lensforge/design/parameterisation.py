@@ -12,9 +12,11 @@ Models and their paper parameter sets (Optics Express 30(9) 14368, 2022, Eqs. 9-
 * ``polynomial``: l, zeta_2, zeta_4, gamma_2, gamma_4 per surface (9 parameters).
 * ``extended_polynomial``: l, the first five terms x, y, x^2, xy, y^2 per surface (11).
 * ``zernike``: l, Noll terms 1..3 per surface (7) on the base sphere of the template.
-  lensforge's default for this model is the ``base`` preset, which also frees both
-  base curvatures (the paper does not give them; with the assumed f = 50 mm base
-  sphere fixed, no lens of the paper set keeps the pupil lit over +-1 mm).
+  The ``base`` preset also frees both base curvatures (the paper does not give them;
+  with the assumed f = 50 mm base sphere fixed, no lens of the paper set keeps the
+  pupil lit over +-1 mm). lensforge's default for this model is ``full``: the base
+  curvatures and Noll 1..8 per surface (astigmatism and coma break the rotational
+  symmetry; with CMA-ES and the A-optimal criterion this gives all six DOF observable).
 * ``conic`` (lensforge): l and the two base curvatures; rotationally symmetric, so
   always rank 5 -- a reference and a test of the rank penalty.
 
@@ -45,7 +47,7 @@ __all__ = ["MODELS", "FREE_PRESETS", "Parameterisation", "parameterisation", "de
            "parse_bounds", "describe_parameter"]
 
 MODELS = ("polynomial", "extended_polynomial", "zernike", "conic")
-DEFAULT_PRESET = {"polynomial": "paper", "extended_polynomial": "paper", "zernike": "base", "conic": "paper"}
+DEFAULT_PRESET = {"polynomial": "paper", "extended_polynomial": "paper", "zernike": "full", "conic": "paper"}
 _TEMPLATE = {"polynomial": "polynomial", "extended_polynomial": "extended_polynomial",
              "zernike": "zernike", "conic": "spherical"}
 

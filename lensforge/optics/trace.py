@@ -24,6 +24,7 @@ import numba as nb
 import numpy as np
 
 from .bench import Bench
+from .jit import compile_notice
 from .lens import Lens
 from .pose import rotations
 
@@ -42,6 +43,18 @@ _NEWTON_MAXIT = 40
 # is ~ (f''/2f') d^2 < 1e-16 mm for d < 1e-8 mm, so stopping there loses nothing.
 _NEWTON_TOL = 1e-8  # mm
 _FM = {"contract", "arcp", "nsz", "reassoc", "afn"}  # fast math without no-NaN/no-inf assumptions
+
+# Compile cost (first run after install, empty numba cache). Profiled with NUMBA_DEBUG_CACHE and
+# benchmarks/bench_first_run.py: numba-level ``inline="always"`` copied _sag/_trace_lens/_trace_one
+# into every caller (_aim calls _trace_one three times), so typing and parfor passes ran over ~10x
+# the IR: 21 s of CPU for _aim alone. Plain calls let LLVM inline instead: ~3 s, same results to
+# 1e-15. Every array reaches a kernel as a writeable C-contiguous float64/int64 array (``_arr``):
+# a read-only input (e.g. np.broadcast_to) is a different numba type and cost a second full compile.
+
+
+def _arr(a, dtype=np.float64) -> np.ndarray:
+    """a as the one array type the kernels are compiled for (writeable, C order)."""
+    return np.require(a, dtype, ("C", "W"))
 
 
 @dataclass(frozen=True)
@@ -84,15 +97,15 @@ def lens_kernel(lens: Lens, wavelength_nm: float) -> LensKernel:
 def pose_frames(bench: Bench, poses) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) of T_SO for pose vectors (P, 6): p_S = R p_O + t."""
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
-    R = np.ascontiguousarray(rotations(poses[:, 3:]))
-    t = poses[:, :3].copy()
+    R = _arr(rotations(poses[:, 3:]))
+    t = _arr(poses[:, :3].copy())
     t[:, 2] -= bench.placement.distance_mm
     return R, t
 
 
 # ----------------------------------------------------------------------------- kernels
 
-@nb.njit(cache=True, fastmath=_FM, inline="always")
+@nb.njit(cache=True, fastmath=_FM)
 def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y):
     """(z, dz/dx, dz/dy, ok) of surface s at (x, y)."""
     r2 = x * x + y * y
@@ -142,7 +155,7 @@ def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y):
     return z, gx, gy, True
 
 
-@nb.njit(cache=True, fastmath=_FM, inline="always")
+@nb.njit(cache=True, fastmath=_FM)
 def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass):
     """Trace one ray (lens frame) through both surfaces. Returns exit ray and status."""
     n_in = 1.0
@@ -199,7 +212,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
     return ox, oy, oz, dx, dy, dz, 0
 
 
-@nb.njit(cache=True, fastmath=_FM, inline="always")
+@nb.njit(cache=True, fastmath=_FM)
 def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass):
     """Trace the beam ray with transverse coordinates (u, v) for one pose.
 
@@ -342,11 +355,12 @@ def _beam_args(bench: Bench, lens: Lens):
     las = bench.laser
     # start plane: safely before the lens at any valid pose
     z0 = -bench.placement.distance_mm - lens.thickness - lens.edge_diameter - bench.pose_limits.translation_mm - 10.0
-    return z0, float(las.offset_mm[0]), float(las.offset_mm[1]), float(las.slope[0]), float(las.slope[1])
+    return float(z0), float(las.offset_mm[0]), float(las.offset_mm[1]), float(las.slope[0]), float(las.slope[1])
 
 
 def _kernel_args(kern: LensKernel):
-    return kern.c, kern.k, kern.alpha, kern.n_alpha, kern.poly, kern.ripple, kern.zv, kern.ap_r, kern.n
+    return (_arr(kern.c), _arr(kern.k), _arr(kern.alpha), _arr(kern.n_alpha, np.int64), _arr(kern.poly),
+            _arr(kern.ripple), _arr(kern.zv), float(kern.ap_r), float(kern.n))
 
 
 def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None) -> TraceResult:
@@ -355,10 +369,11 @@ def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
-    uv = np.ascontiguousarray(np.atleast_2d(uv), dtype=float)
+    uv = _arr(np.atleast_2d(uv))
     out = np.empty((Rs.shape[0], uv.shape[0], 5))
     status = np.empty((Rs.shape[0], uv.shape[0]), dtype=np.int8)
-    _trace_grid(uv, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), out, status)
+    with compile_notice():
+        _trace_grid(uv, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), out, status)
     return TraceResult(out[..., :2], out[..., 2:], status)
 
 
@@ -374,13 +389,15 @@ def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKern
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
-    targets = np.ascontiguousarray(targets, dtype=float)
+    targets = _arr(targets)
     n_p, n_t = Rs.shape[0], targets.shape[0]
     if u0 is None:
         u0 = np.broadcast_to(targets - np.asarray(bench.laser.offset_mm), (n_p, n_t, 2))
-    u0 = np.ascontiguousarray(np.broadcast_to(u0, (n_p, n_t, 2)), dtype=float)
+    u0 = _arr(np.broadcast_to(u0, (n_p, n_t, 2)))
     out = np.empty((n_p, n_t, 5))
     status = np.empty((n_p, n_t), dtype=np.int8)
     counts = np.empty((n_p, n_t), dtype=np.int64)
-    _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), eps, tol, maxit, out, status, counts)
+    with compile_notice():
+        _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), float(eps), float(tol), int(maxit),
+             out, status, counts)
     return out[..., :2], out[..., 2:4], out[..., 4], status, int(counts.sum())

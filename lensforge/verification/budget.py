@@ -91,10 +91,10 @@ def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None,
     config = config or StudyConfig()
     rows = []
     with _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress) as run:
-        rows.append(_row("none", run(None, config)))
+        rows.append(_row("none", run(None, config, "sensitivity: noise only")))
         for name in tol.component_names():
-            rows.append(_row(name, run(tol.only(name), config)))
-        rows.append(_row("all", run(tol, config)))
+            rows.append(_row(name, run(tol.only(name), config, f"sensitivity: {name}")))
+        rows.append(_row("all", run(tol, config, "sensitivity: all tolerances")))
     return rows
 
 
@@ -104,9 +104,9 @@ def _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress):
     in-process when workers == 0 and no scheduler/client is given), with common random numbers."""
     own = client is None and not (workers == 0 and scheduler is None)
     with (dask_client(workers, scheduler) if own else nullcontext(client)) as cl:
-        def run(t, config):
+        def run(t, config, label="as-built lenses"):
             return verify(lens, t, n_lenses, seed, bench, config=config, workers=0 if cl is None else None,
-                          client=cl, progress=progress)
+                          client=cl, progress=progress, description=label)
 
         yield run
 
@@ -238,10 +238,10 @@ def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: fl
     rows = []
     with _studies(lens, n_lenses, seed, bench, workers, scheduler, client, progress) as run:
 
-        def study(t):
-            return run(t, config)  # config is re-bound below when the target is relative to noise
+        def study(t, label):
+            return run(t, config, f"budget: {label}")  # config is re-bound below for a target relative to noise
 
-        noise = study(None)
+        noise = study(None, "noise only")
         if relative_to_noise is not None:
             k = float(relative_to_noise)
             if not k > 1.0:
@@ -252,12 +252,15 @@ def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: fl
                 raise ConfigError("relative_to_noise: the noise-only study fails too often to define a target")
             config = replace(config, target_mm=k * pt, target_deg=k * pr)
             target_mm, target_deg = config.target_mm, config.target_deg
-            noise = study(None)
+            noise = study(None, "noise only")
         f0 = _ratio(noise)
         for c in names:
             base = tol.only(c)
-            scale, ratio, status, evals = search_scale(lambda s: _ratio(study(base.scaled(c, s))), f0,
-                                                       rel_tol=rel_tol, max_evals=max_evals)
+
+            def f(s, base=base, c=c):
+                return _ratio(study(base.scaled(c, s), f"{c} x {s:.3g}"))
+
+            scale, ratio, status, evals = search_scale(f, f0, rel_tol=rel_tol, max_evals=max_evals)
             given, unit = _main_value(tol, c, lens.material_data)
             val = None if scale is None else _main_value(tol, c, lens.material_data, scale)[0]
             rows.append(BudgetRow(c, scale, val, given, unit, ratio, status, tuple(evals)))

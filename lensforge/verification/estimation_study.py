@@ -39,6 +39,8 @@ from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
+from ..display import UNOBSERVABLE, UNOBSERVABLE_NOTE
+from .statistics import box_stats, median
 
 __all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
            "SCHEMA_VERSION"]
@@ -110,9 +112,9 @@ class LensStudy:
             "failure_rate": (n - k) / n if n else nan,
             "pupil_lost": int(np.sum(self.status == PUPIL_LOST)),
             "not_converged": int(np.sum(self.status == NOT_CONVERGED)),
-            "median_translation_error_um": float(np.median(t) * 1e3) if k else nan,
+            "median_translation_error_um": median(t) * 1e3 if k else nan,
             "std_translation_error_um": float(np.std(t, ddof=1) * 1e3) if k > 1 else nan,
-            "median_rotation_error_urad": float(np.median(r) * 1e6) if k else nan,
+            "median_rotation_error_urad": median(r) * 1e6 if k else nan,
             "std_rotation_error_urad": float(np.std(r, ddof=1) * 1e6) if k > 1 else nan,
             "norm_of_dof_std_translation_um": float(np.linalg.norm(np.std(e[:, :3] * self.observable[:3], axis=0, ddof=1)) * 1e3) if k > 1 else nan,
             "norm_of_dof_std_rotation_urad": float(np.linalg.norm(np.std(e[:, 3:] * self.observable[3:], axis=0, ddof=1)) * 1e6) if k > 1 else nan,
@@ -149,8 +151,9 @@ def swing_equivalent(x: np.ndarray) -> np.ndarray:
 
 
 def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, method: str = "lm", seed: int = 0,
-               initial: InitialPoseModel | None = None, commanded=None, **estimator_options) -> LensStudy:
-    """Run ``trials`` seeded estimates of one lens (see module docstring)."""
+               initial: InitialPoseModel | None = None, commanded=None, tick=None, **estimator_options) -> LensStudy:
+    """Run ``trials`` seeded estimates of one lens (see module docstring); ``tick()`` is called
+    after each trial (a progress bar's advance)."""
     if method not in ESTIMATORS:
         raise ConfigError(f"method: {method!r} is not one of {', '.join(ESTIMATORS)}")
     if int(trials) != trials or trials < 1:
@@ -178,6 +181,8 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
     t0 = time.perf_counter()
     lim = bench.pose_limits
     for i, child in enumerate(children):
+        if tick is not None and i:
+            tick()  # trial i - 1 is done (the body below leaves early with ``continue``)
         rng = np.random.default_rng(child)
         x = c + rng.normal(size=6) * initial.sigma
         x[:3] = np.clip(x[:3], -lim.translation_mm, lim.translation_mm)
@@ -213,6 +218,8 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
         chi2[i] = est.chi2
         nees[i] = est.nees(xs)
         crlb[i] = _crlb_var(model, xs)
+    if tick is not None:
+        tick()
     seconds = time.perf_counter() - t0
     return LensStudy(name=name, method=method, errors=errors, true_poses=truth, status=status.astype(str),
                      reported_std=rstd, crlb_var=crlb, chi2=chi2, nees=nees, n_evals=nev, dof=dof,
@@ -233,19 +240,24 @@ def _fmt(v, nd=1):
 
 
 def format_table(results: list[LensStudy]) -> str:
-    """Plain-text table (translation um, rotation urad)."""
-    head = (f"{'lens':<22}{'method':<7}{'fail':>6}{'med|t| um':>11}{'std|t| um':>11}{'med|r| urad':>13}"
-            f"{'std|r| urad':>13}  RMSE/CRLB tx ty tz rx ry rz{'':>6}{'NEES/dof':>9}{'chi2/dof':>9}{'ms':>7}")
+    """Plain-text table (translation um, rotation urad; fail = share of failed trials, lost = pupil
+    lost, unconv = not converged), then a legend line."""
+    head = (f"{'lens':<22}{'method':<7}{'fail':>6}{'lost':>5}{'unconv':>7}{'med|t| um':>11}{'std|t| um':>11}"
+            f"{'med|r| urad':>13}{'std|r| urad':>13}  RMSE/CRLB tx ty tz rx ry rz{'':>6}{'NEES/dof':>9}{'chi2/dof':>9}{'ms':>7}")
     lines = [head]
     for r in results:
         s = r.summary()
-        ratio = " ".join(_fmt(s["rmse_over_crlb"][d], 2).rjust(4) for d in DOF_NAMES)
+        ratio = " ".join((UNOBSERVABLE if d in s["unobservable"] else _fmt(s["rmse_over_crlb"][d], 2)).rjust(4)
+                         for d in DOF_NAMES)
         lines.append(
-            f"{s['lens'][:21]:<22}{s['method']:<7}{100 * s['failure_rate']:>5.0f}%{_fmt(s['median_translation_error_um']):>11}"
+            f"{s['lens'][:21]:<22}{s['method']:<7}{100 * s['failure_rate']:>5.0f}%{s['pupil_lost']:>5}"
+            f"{s['not_converged']:>7}{_fmt(s['median_translation_error_um']):>11}"
             f"{_fmt(s['std_translation_error_um']):>11}{_fmt(s['median_rotation_error_urad']):>13}"
             f"{_fmt(s['std_rotation_error_urad']):>13}  {ratio:<32}{_fmt(s['mean_nees_per_dof'], 2):>9}"
             f"{_fmt(s['mean_chi2_dof'], 2):>9}{_fmt(s['ms_per_estimate'], 0):>7}"
         )
+    lines.append(f"fail: failed trials (lost: the pose left the SH pupil dark; unconv: the estimator did not "
+                 f"converge); {UNOBSERVABLE_NOTE}")
     return "\n".join(lines)
 
 
@@ -274,11 +286,11 @@ def plot_study(results: list[LensStudy], path) -> "Path":
     labels = [f"{r.name}\n({r.method})" for r in results]
     for j, ax in enumerate(axes.flat):
         unit, sc = ("um", 1e3) if j < 3 else ("urad", 1e6)
-        data = []
+        boxes = []
         for r in results:
             e = r.errors[r.ok, j] * sc if DOF_NAMES[j] not in r.unobservable else np.array([])
-            data.append(e if e.size else np.array([np.nan]))
-        ax.boxplot(data, showfliers=True, flierprops={"markersize": 2})
+            boxes.append(box_stats(e))
+        ax.bxp(boxes, showfliers=True, flierprops={"markersize": 2})
         ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7, rotation=20)
         ax.axhline(0.0, color="0.6", lw=0.6)
         ax.set_title(f"{DOF_NAMES[j]} error ({unit})", fontsize=9)

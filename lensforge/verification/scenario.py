@@ -51,6 +51,7 @@ from ..calibration.pose_design import candidate_poses, design_poses, predicted_u
 from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
 from ..calibration.session import lens_pose_crlb, lit_mask
 from ..calibration.robot import PAPER_Z, Scene, flange_pose, paper_scene, random_lens_poses
+from .statistics import median
 
 __all__ = ["scenario_scene", "ScenarioConfig", "CalibrationRun", "run_calibration", "plan_poses", "compare_pose_designs",
            "format_comparison"]
@@ -323,10 +324,10 @@ def _summarize(runs: list[CalibrationRun], prediction: dict) -> dict:
     return {
         "runs": len(runs),
         "Z_translation_error_rms_um": float(np.sqrt(np.mean(et**2)) * 1e3),
-        "Z_translation_error_median_um": float(np.median(et) * 1e3),
+        "Z_translation_error_median_um": median(et) * 1e3,
         "Z_translation_predicted_rms_um": float(np.sqrt(np.mean(bt**2)) * 1e3),
         "Z_rotation_error_rms_urad": float(np.sqrt(np.mean(er**2)) * 1e6),
-        "Z_rotation_error_median_urad": float(np.median(er) * 1e6),
+        "Z_rotation_error_median_urad": median(er) * 1e6,
         "Z_rotation_predicted_rms_urad": float(np.sqrt(np.mean(br**2)) * 1e6),
         "Z_design_bound_translation_um": float(prediction["Z_translation_mm"] * 1e3),
         "Z_design_bound_rotation_urad": float(prediction["Z_rotation_rad"] * 1e6),
@@ -343,12 +344,13 @@ def _summarize(runs: list[CalibrationRun], prediction: dict) -> dict:
 
 
 def compare_pose_designs(bench: Bench, lens: Lens, cfg: ScenarioConfig | None = None,
-                         designs=("random", "oed"), runs: int = 20, seed: int = 0, scene: Scene | None = None) -> dict:
+                         designs=("random", "oed"), runs: int = 20, seed: int = 0, scene: Scene | None = None,
+                         tick=None) -> dict:
     """Run ``runs`` seeded calibrations per pose design; JSON-ready summary.
 
     "random" draws new random lit poses for every run; "oed" designs the poses once
     (nominal model, CRLB at nominal) and reuses them. Runs i of both designs share
-    their scene/noise stream (common random numbers).
+    their scene/noise stream (common random numbers). ``tick()`` is called after each calibration.
     """
     cfg = cfg or ScenarioConfig()
     if int(runs) != runs or runs < 1:
@@ -372,6 +374,8 @@ def compare_pose_designs(bench: Bench, lens: Lens, cfg: ScenarioConfig | None = 
                 raise ConfigError(f"design: {d!r} is not random or oed")
             results.append(run_calibration(bench, lens, x, np.random.default_rng(ss), cfg, scene, model))
             preds.append(p)
+            if tick is not None:
+                tick()
         # design-time bound; for random, the RMS over the runs' own designs
         bound = {k: float(np.sqrt(np.mean([q[k] ** 2 for q in preds]))) for k in ("Z_translation_mm", "Z_rotation_rad")}
         s = _summarize(results, bound)
@@ -384,10 +388,14 @@ def compare_pose_designs(bench: Bench, lens: Lens, cfg: ScenarioConfig | None = 
 def format_comparison(rep: dict) -> str:
     """Plain-text table of compare_pose_designs (um, urad)."""
     lines = [f"{'poses':<8}{'runs':>5}{'|dZ_t| rms um':>15}{'pred um':>9}{'bound um':>10}{'|dZ_r| rms urad':>17}"
-             f"{'pred urad':>11}{'bound urad':>12}{'NEES/dof':>10}{'chi2/dof':>10}{'lost':>6}"]
+             f"{'pred urad':>11}{'bound urad':>12}{'NEES/dof':>10}{'chi2/dof':>10}{'lost':>6}{'unconv':>8}"
+             f"{'degen':>7}"]
     for d, s in rep["designs"].items():
         lines.append(f"{d:<8}{s['runs']:>5}{s['Z_translation_error_rms_um']:>15.1f}{s['Z_translation_predicted_rms_um']:>9.1f}"
                      f"{s['Z_design_bound_translation_um']:>10.1f}{s['Z_rotation_error_rms_urad']:>17.1f}"
                      f"{s['Z_rotation_predicted_rms_urad']:>11.1f}{s['Z_design_bound_rotation_urad']:>12.1f}"
-                     f"{s['mean_nees_Z_per_dof']:>10.2f}{s['mean_chi2_dof']:>10.2f}{s['pupil_lost']:>6}")
+                     f"{s['mean_nees_Z_per_dof']:>10.2f}{s['mean_chi2_dof']:>10.2f}{s['pupil_lost']:>6}"
+                     f"{s['not_converged']:>8}{s['flagged_degenerate']:>7}")
+    lines.append("lost: poses whose beam left the SH pupil dark; unconv: pose estimates that did not converge; "
+                 "degen: calibrations flagged as degenerate motion")
     return "\n".join(lines)

@@ -44,6 +44,8 @@ from ..optics.bench import Bench
 from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
 from ..optics.shack_hartmann import ForwardModel
+from ..calibration.pose_estimation import estimate_poses_batch
+from .statistics import error_stats, outcome_counts
 from .runner import TrialStore, config_hash, run_trials
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "run_trial", "StudyContext", "summarize_errors",
@@ -259,37 +261,26 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
 # ----------------------------------------------------------------------------- the study
 
 
-def _pct(v: np.ndarray, q: float) -> float | None:
-    """Percentile of v treating failures (inf) as worst; None when undefined or infinite."""
-    if v.size == 0:
-        return None
-    r = float(np.percentile(v, q, method="higher"))
-    return r if math.isfinite(r) else None
-
-
 def summarize_errors(records: list[dict], target_mm: float, target_deg: float, percentile: float = 95.0) -> dict:
     """Summary of trial records: median / percentile / max of the Z error (failed
-    trials count as infinitely wrong), failure counts, mean pose bias, pass/fail."""
+    trials count as infinitely wrong), failure counts, mean pose bias, pass/fail.
+    Statistics and counts come from ``verification.statistics`` (as do the plots')."""
     n = len(records)
-    ok = np.array([bool(r["ok"]) for r in records], bool)
+    counts = outcome_counts(records)
     rot = np.array([r["rot_err_deg"] if r["ok"] else np.inf for r in records], float)
     tr = np.array([r["trans_err_mm"] if r["ok"] else np.inf for r in records], float)
     bias = np.array([r["bias"] for r in records if r["ok"]], float).reshape(-1, 6)
     q = float(percentile)
-    p_rot, p_tr = _pct(rot, q), _pct(tr, q)
-    failures: dict[str, int] = {}
-    for r in records:
-        if not r["ok"]:
-            key = r["failure"].split(":")[0].split(" (")[0]
-            failures[key] = failures.get(key, 0) + 1
+    rot_stats, tr_stats = error_stats(rot, q), error_stats(tr, q)
+    p_rot, p_tr = rot_stats[f"p{q:g}"], tr_stats[f"p{q:g}"]
     mb = bias.mean(axis=0) if bias.size else np.full(6, np.nan)
     return {
         "n_lenses": n,
-        "n_ok": int(ok.sum()),
-        "failure_rate": float(1 - ok.mean()) if n else None,
-        "failures": failures,
-        "rotation_deg": {"median": _pct(rot, 50), f"p{q:g}": p_rot, "max": _pct(rot, 100)},
-        "translation_mm": {"median": _pct(tr, 50), f"p{q:g}": p_tr, "max": _pct(tr, 100)},
+        "n_ok": counts["n_ok"],
+        "failure_rate": counts["n_failed"] / n if n else None,
+        "failures": counts["failures"],
+        "rotation_deg": rot_stats,
+        "translation_mm": tr_stats,
         "percentile": q,
         "target": {"translation_mm": target_mm, "rotation_deg": target_deg},
         "meets_target": bool(p_rot is not None and p_tr is not None and p_rot <= target_deg and p_tr <= target_mm),
@@ -298,9 +289,7 @@ def summarize_errors(records: list[dict], target_mm: float, target_deg: float, p
         "mean_pose_bias": {**{f"{k}_um": (float(v * 1e3) if np.isfinite(v) else None) for k, v in zip(DOF_NAMES[:3], mb[:3])},
                            **{f"{k}_mdeg": (float(np.degrees(v) * 1e3) if np.isfinite(v) else None)
                               for k, v in zip(DOF_NAMES[3:], mb[3:])}},
-        "pupil_lost_poses": int(sum(r.get("n_pupil_lost", 0) for r in records)),
-        "not_converged_poses": int(sum(r.get("n_not_converged", 0) for r in records)),
-        "out_of_range_poses": int(sum(r.get("n_out_of_range", 0) for r in records)),
+        **{k: counts[k] for k in ("pupil_lost_poses", "not_converged_poses", "out_of_range_poses")},
     }
 
 
@@ -447,7 +436,7 @@ def result_from_records(records: dict[int, dict], config: dict, chash: str, stor
 def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | None = None, n_poses: int = 24, *,
            workers: int | None = None, scheduler: str | None = None, store=None, resume: bool = False,
            progress: bool = True, calibration: str = "two-stage", config: StudyConfig | None = None,
-           plan_seed: int = 0, client=None) -> StudyResult:
+           plan_seed: int = 0, client=None, description: str = "as-built lenses") -> StudyResult:
     """As-built Monte Carlo of the calibration for ``n_lenses`` as-built lenses.
 
     design_or_lens: Lens, Design, paper lens name or design JSON path; tolerances:
@@ -458,7 +447,8 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     all cores); scheduler: address of an existing Dask scheduler; store: SQLite file
     to append finished trials to (resume=True continues a killed study; the store
     refuses a different study); calibration: "two-stage" or "joint" (ignored when
-    ``config`` is given; see StudyConfig). Returns a :class:`StudyResult` (errors in deg and mm).
+    ``config`` is given; see StudyConfig); description: the progress bar's label.
+    Returns a :class:`StudyResult` (errors in deg and mm).
     A script that starts a local cluster (workers != 0) needs the usual
     ``if __name__ == "__main__":`` guard (worker processes are spawned).
     """
@@ -475,6 +465,6 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     with (TrialStore.session(store, chash, cfg, resume=resume, n_trials=int(n_lenses)) if store is not None
           else nullcontext()) as st:
         records, stats = run_trials(run_trial, ctx, int(n_lenses), int(seed), st, workers=workers,
-                                    scheduler=scheduler, progress=progress, description="as-built lenses",
+                                    scheduler=scheduler, progress=progress, description=description,
                                     client=client)
     return result_from_records(records, cfg, chash, store, stats, config)

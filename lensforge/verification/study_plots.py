@@ -12,20 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import write_atomic
+from .statistics import percentile
 
-__all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget", "percentile"]
-
-
-def percentile(values, q: float) -> float | None:
-    """The percentile the study's console and JSON report (failures count as infinitely
-    wrong; ``numpy.percentile(method="higher")``, an observed value). One call, so plots and
-    numbers agree; None when undefined or infinite. The study command passes its summary
-    to the plots instead, so they draw exactly the reported numbers."""
-    v = np.asarray(values, dtype=float)
-    if v.size == 0:
-        return None
-    r = float(np.percentile(v, q, method="higher"))
-    return r if np.isfinite(r) else None
+__all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget"]
 
 
 def _fig(*args, **kw):
