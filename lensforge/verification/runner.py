@@ -283,7 +283,7 @@ def _progress(enabled: bool, total: int, done: int, description: str):
     prog = Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
         TimeElapsedColumn(), TimeRemainingColumn(),
-        console=Console(stderr=True), disable=not enabled, transient=False,
+        console=Console(stderr=True), disable=not enabled, transient=True,  # budget runs many studies: no finished line each
     )
     task = prog.add_task(description or "trials", total=total, completed=done)
     return prog, task
