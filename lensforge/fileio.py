@@ -170,6 +170,8 @@ def staged_dir(out):
     import shutil
 
     out = Path(out)
+    if not out.name:  # ".", "..": the temporary folder needs the output folder's own name
+        out = out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp"))
     try:

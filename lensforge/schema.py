@@ -189,6 +189,12 @@ BENCH_RANGES = {
     "sensor.pupil_center_mm": Num(-50.0, 50.0, "mm"),
     "sensor.zernike_order": Num(1, 10, "", integer=True),
     "sensor.irradiance_threshold": Num(0.0, 0.999, "(fraction of the beam peak)"),
+    # lenslet arrays: f = 1.6 .. 40 mm (Thorlabs MLA, Edmund); cameras: 1 .. 25 um pixels (ASSUMPTION: wider)
+    "sensor.lenslet_focal_mm": Num(0.5, 100.0, "mm"),
+    "sensor.pixel_mm": Num(0.0005, 0.1, "mm"),
+    "sensor.subaperture_quadrature": Num(1, 16, "(rays per lenslet side)", integer=True),  # n^2 rays per lenslet
+    "sensor.centroid_window_px": Num(0, 4096, "px", integer=True),
+    "sensor.centroid_threshold": Num(0.0, 0.999, "(fraction of the spot peak)"),
     "noise.slope_sigma_urad": Num(0.0, 1e5, "urad", lo_open=True),
     "pose_limits.translation_mm": Num(0.0, 100.0, "mm", lo_open=True),
     "pose_limits.rotation_rad": Num(0.0, math.pi / 2, "rad", lo_open=True),

@@ -557,6 +557,8 @@ def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
     in ``folder`` not in ``files`` are kept). Returns {name: Path}."""
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
+    if not folder.name:  # ".", "..", "/": swap and rename need the folder's own name
+        folder = folder.resolve()
     if folder.exists() and not folder.is_dir():
         raise ConfigError(f"output folder {folder}: exists and is not a folder; choose another -o")
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.", suffix=".tmp"))

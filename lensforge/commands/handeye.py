@@ -35,7 +35,8 @@ _NOISE_KEYS = ("robot_sigma_trans_mm", "robot_sigma_rot_deg", "lens_sigma_trans_
 
 
 def _matrices(name: str, key: str, v, scale: float) -> np.ndarray:
-    M = number_array(v, f"{name}:{key}", (None, 4, 4), POSE_TRANSLATION)  # strict: no strings, NaN or 1e300
+    rng = Num(POSE_TRANSLATION.lo / scale, POSE_TRANSLATION.hi / scale, "m" if scale != 1.0 else "mm")
+    M = number_array(v, f"{name}:{key}", (None, 4, 4), rng)  # strict: no strings, NaN or 1e300; range in the file's unit
     if M.ndim != 3:
         raise ConfigError(f"{name}:{key}: give a list of 4x4 homogeneous matrices, got an empty list")
     M = M.copy()
