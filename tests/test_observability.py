@@ -34,9 +34,10 @@ def test_paper_lenses_rz(bench, name, rz):
     assert ob.observable[:5].all()
     if name == "spherical":  # numerically null: 1-sigma inf, never a finite number
         assert ob.null_names == ("rz",) and math.isinf(ob.std[5])
-    if name == "zernike":  # rank 6, yet rz 1-sigma ~ 10.6 deg > 1 deg
+    if name == "zernike":  # rank 6, yet rz 1-sigma ~ 11 deg > 1 deg
         assert ob.rank == 6 and ob.null_names == ()
-        assert math.degrees(ob.std[5]) == pytest.approx(10.6, rel=0.02)
+        # 10.6 deg with the old lenslet-centre slopes, 11.0 deg with the spot-centroid sensor model
+        assert math.degrees(ob.std[5]) == pytest.approx(11.0, rel=0.02)
 
 
 def test_demo_design_fully_observable():
