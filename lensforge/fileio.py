@@ -45,28 +45,26 @@ def write_atomic(path, data: bytes | str) -> Path:
     return path
 
 
-def read_json(path, what: str):
-    """Parsed JSON of ``path``; ConfigError naming ``what`` (e.g. "design file") otherwise."""
+def _parse(path, what: str, fmt: str, loads, errors):
     p = Path(path)
     text = _read_text(p, what)
     try:
-        return json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{what} {p}: not valid JSON ({e.msg} at line {e.lineno})") from None
+        return loads(text)
+    except errors as e:
+        detail = f"{e.msg} at line {e.lineno}" if isinstance(e, json.JSONDecodeError) else str(e)
+        raise ConfigError(f"{what} {p}: not valid {fmt} ({detail})") from None
     except RecursionError:
         raise ConfigError(f"{what} {p}: nested too deeply to be a lensforge file") from None
+
+
+def read_json(path, what: str):
+    """Parsed JSON of ``path``; ConfigError naming ``what`` (e.g. "design file") otherwise."""
+    return _parse(path, what, "JSON", json.loads, json.JSONDecodeError)
 
 
 def read_toml(path, what: str) -> dict:
     """Parsed TOML of ``path``; ConfigError naming ``what`` (e.g. "bench file") otherwise."""
-    p = Path(path)
-    text = _read_text(p, what)
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{what} {p}: not valid TOML ({e})") from None
-    except RecursionError:
-        raise ConfigError(f"{what} {p}: nested too deeply to be a lensforge file") from None
+    return _parse(path, what, "TOML", tomllib.loads, tomllib.TOMLDecodeError)
 
 
 # Input files are small; a bigger one is not a lensforge file (and would only fill memory).

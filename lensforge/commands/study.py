@@ -134,7 +134,8 @@ def budget_cmd(
     scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
     bench: Path = typer.Option(None, "--bench", help="bench TOML"),
     out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
-    calibration: str = typer.Option("joint", "--calibration", help="two-stage or joint (see `lensforge study`)"),
+    calibration: str = typer.Option("two-stage", "--calibration",
+                                    help="two-stage, or joint (see `lensforge study`; about 10x the CPU per lens)"),
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ):
