@@ -105,6 +105,10 @@ def main(args: list[str] | None = None) -> None:
                 sys.exit(1)
             if _is_click_exception(e, "ClickException"):
                 msg = " ".join((e.format_message() if hasattr(e, "format_message") else str(e)).split())
+                if type(e).__name__ == "NoArgsIsHelpError":  # bare `lensforge` (click >= 8.2): help, then one line
+                    ctx = getattr(e, "ctx", None)
+                    typer.echo(ctx.get_help() if ctx is not None else e.format_message(), err=True)
+                    msg = ""
                 if not msg:  # bare `lensforge`: click printed the help
                     msg = "no command given; pick one of the commands listed above"
                 typer.echo(f"error: {msg}", err=True)
