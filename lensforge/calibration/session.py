@@ -21,8 +21,8 @@ chi2 over its expectation so that an overall misfit does not reject every pose):
 first on each lens-pose fit (m - 6 DOF: a wrong local minimum or a corrupted frame),
 then on each pose's hand-eye residual (6 DOF), after which the solve is repeated once. Model check: chi2 of the final solve against its degrees
 of freedom (p-value); a small p-value warns that the lens as built or the noise
-model differs from what the design says (``method="joint"`` estimates the as-built
-lens, issue 10; not available yet).
+model differs from what the design says. ``method="joint"`` (the default,
+``session_joint``) estimates the as-built lens with X and Z.
 """
 
 from __future__ import annotations
@@ -335,9 +335,12 @@ class CalibrationResult:
     robot: str
     warnings: tuple = field(default=())
     outlier_threshold: float = float("nan")
+    extra: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected."""
+        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected,
+        method, and the method's own keys (``extra``; joint: tolerances, p_value,
+        lens_parameters, ...)."""
         return {
             "schema_version": SCHEMA_VERSION,
             "Z": frame_dict(self.Z, self.handeye.cov_Z),
@@ -345,13 +348,16 @@ class CalibrationResult:
             "chi2_dof": float(self.chi2_dof),
             "poses_used": list(self.poses_used),
             "poses_rejected": list(self.poses_rejected),
+            "method": self.method,
+            **self.extra,
         }
 
     def to_dict(self) -> dict:
         """The full result file: to_json() plus the model check and per-pose table."""
         return {**self.to_json(), "kind": "calibration_result", "method": self.method, "robot": self.robot,
                 "chi2": float(self.chi2), "dof": int(self.dof), "p_value": float(self.p_value),
-                "outlier_threshold_chi2": float(self.outlier_threshold),
+                "outlier_threshold_chi2": (float(self.outlier_threshold) if np.isfinite(self.outlier_threshold)
+                                          else None),
                 "observable": bool(self.handeye.observable),
                 "null_directions": list(self.handeye.null_directions),
                 "per_pose": list(self.per_pose), "warnings": list(self.warnings),
@@ -399,7 +405,8 @@ class CalibrationResult:
         fig, ax = plt.subplots(2, 1, figsize=(max(6, 0.35 * len(ids) + 2), 6), sharex=True)
         ax[0].bar(ids, he, color=col)
         ax[0].axhline(6.0, color="k", lw=0.8, ls=":", label="expected (6 DOF)")
-        ax[0].axhline(self.outlier_threshold, color="tab:red", lw=0.8, ls="--", label="outlier threshold")
+        if np.isfinite(self.outlier_threshold):
+            ax[0].axhline(self.outlier_threshold, color="tab:red", lw=0.8, ls="--", label="outlier threshold")
         ax[0].set_ylabel("hand-eye residual chi2 (6 DOF)")
         ax[0].set_yscale("log")
         ax[0].legend(fontsize=8)
@@ -484,27 +491,31 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
 
 
 def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
-              robot: RobotModel | str | None = None, method: str = "two-stage",
+              robot: RobotModel | str | None = None, method: str = "joint", tolerances="default",
               outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
     WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
     name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
-    CALIBRATION_METHODS name ("two-stage"; the joint as-built calibration registers
-    there when it lands); progress: optional callable (done, total) called after each
+    CALIBRATION_METHODS name ("joint", the default: the as-built lens estimated with
+    X and Z, ``session_joint``; "two-stage": nominal lens); tolerances: the tolerance
+    model of the joint method's lens prior ("default": the package's file, or a TOML
+    path; two-stage ignores it); progress: optional callable (done, total) called after each
     lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
     than 3 usable poses.
     """
     if method not in CALIBRATION_METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
     data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
-    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress)
+    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
 
 
-def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
+              tolerances=None) -> CalibrationResult:
     """Two-stage calibration of a matched session: lens poses one by one, then A X = Z B
-    by maximum likelihood, robust outlier test and chi2 model check (module docstring)."""
+    by maximum likelihood, robust outlier test and chi2 model check (module docstring).
+    tolerances: unused (the nominal lens is assumed)."""
     model, scene, robot = data.model, data.scene, data.robot
     rejected = list(data.rejected)
     common, A_all, z_all = data.ids, data.A, data.z
@@ -588,4 +599,11 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
                              warnings=tuple(warns), outlier_threshold=thr)
 
 
+def _joint(data: SessionData, **kw) -> CalibrationResult:
+    from .session_joint import joint_session  # it builds on two_stage: imported when used
+
+    return joint_session(data, **kw)
+
+
+CALIBRATION_METHODS["joint"] = _joint
 CALIBRATION_METHODS["two-stage"] = two_stage
