@@ -1,6 +1,6 @@
 """The joint as-built calibration of a bench session (``calibrate(..., method="joint")``).
 
-The two-stage pipeline (``session.two_stage``) runs first on the matched session; its
+A start method (``session.two_stage``, given by ``session.joint``) runs first on the matched session; its
 X, Z start the joint maximum-likelihood calibration (``joint.joint_calibrate_from``)
 on the raw Zernike vectors and the recorded flange poses, then the robot program's
 nominal X, Z (the cell's) if the chi2 test flags the first fit (or two-stage failed).
@@ -28,7 +28,7 @@ from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load
 from ..optics.pose import invert_poses, matrix_to_pose
 from .joint import JointProblem, joint_calibrate_from
 from .lens_params import parameterise
-from .session import OUTLIER_ALPHA, CalibrationResult, SessionData, two_stage
+from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData
 
 __all__ = ["JointFrames", "joint_session", "resolve_tolerances"]
 
@@ -64,10 +64,12 @@ def _per_pose(bench, param, res, z, A, Tn, robot_cov):
     return np.sum(r * r, axis=1), np.sum((res.robot_errors @ pb.WA.T) ** 2, axis=1)
 
 
-def joint_session(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
+def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
                   tolerances="default") -> CalibrationResult:
     """Joint as-built calibration of a matched session (module docstring).
 
+    start: a calibration method (SessionData -> CalibrationResult, e.g.
+    ``session.two_stage``) whose X, Z start the fit (None: the cell's nominal X, Z only);
     tolerances: the tolerance model of theta's prior ("default": the package's file,
     a TOML path or Tolerances); recorded in the result."""
     tol, tol_label = resolve_tolerances(tolerances)
@@ -76,10 +78,11 @@ def joint_session(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, pr
     robot_cov = robot.noise.cov
     starts, warns = [], []
     try:
-        ts = two_stage(data, outlier_alpha=outlier_alpha, progress=progress)
-        starts.append((ts.X, ts.Z))
+        if start is not None:
+            ts = start(data, outlier_alpha=outlier_alpha, progress=progress)
+            starts.append((ts.X, ts.Z))
     except LensforgeError as e:
-        warns.append(f"two-stage start failed ({e}); the joint fit starts from the robot cell's nominal X, Z")
+        warns.append(f"{start.__name__} start failed ({e}); the joint fit starts from the robot cell's nominal X, Z")
     starts.append((scene.X, scene.Z))
     X0, Z0 = starts[0]
     x_start = matrix_to_pose(invert_poses(Tn) @ invert_poses(Z0) @ data.A @ X0)
