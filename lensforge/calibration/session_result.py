@@ -117,6 +117,10 @@ class CalibrationResult:
         lines = [f"lensforge calibration ({self.method}, {self.robot}): {len(self.poses_used)} poses used, "
                  f"{len(self.poses_rejected)} rejected",
                  f"chi2/dof = {self.chi2_dof:.3g} (dof {self.dof}, p = {self.p_value:.3g})"]
+        lp = self.extra.get("lens_parameters")
+        if lp is not None:
+            lines.append(f"as-built lens: {len(lp['theta'])} parameters from {self.extra['tolerances']}, "
+                         f"{lp['n_identifiable']} identified by the data (1-sigma < half the prior)")
         for name, frame in (("Z = ^W T_S (sensor in the robot base)", "Z"), ("X = ^E T_O (lens in the flange)", "X")):
             f = d[frame]
             s = f["std"]
