@@ -21,15 +21,15 @@ chi2 over its expectation so that an overall misfit does not reject every pose):
 first on each lens-pose fit (m - 6 DOF: a wrong local minimum or a corrupted frame),
 then on each pose's hand-eye residual (6 DOF), after which the solve is repeated once. Model check: chi2 of the final solve against its degrees
 of freedom (p-value); a small p-value warns that the lens as built or the noise
-model differs from what the design says (``method="joint"`` estimates the as-built
-lens, issue 10; not available yet).
+model differs from what the design says. ``method="joint"`` (the default,
+``session_joint``) estimates the as-built lens with X and Z.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -47,12 +47,13 @@ from .handeye import solve_handeye
 from .pose_design import candidate_poses, design_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
+from .session_joint import joint_session
+from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict
 
 __all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
            "two_stage", "calibrate", "estimate", "load_design_lens",
            "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
 
-SCHEMA_VERSION = 1
 CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha, progress) -> CalibrationResult
 
 
@@ -117,42 +118,6 @@ def lens_pose_crlb(bench: Bench, lens: Lens) -> np.ndarray:
         raise CalibrationError(f"lens: its pose is not fully observable (rank {m.rank} < 6); hand-eye calibration "
                                "needs all 6 DOF of the lens pose: use a freeform lens")
     return m.crlb
-
-
-# ----------------------------------------------------------------------------- frames for output
-
-
-def frame_dict(T: np.ndarray, cov_right: np.ndarray) -> dict:
-    """JSON block of a calibrated frame: matrix (4x4, mm), xyzabc (mm, deg, KUKA),
-    quaternion_wxyz, std {tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg} and cov (6x6).
-
-    std and cov are of the translation error t_est - t_true (mm) and the rotation-error
-    vector of R_est R_true^T (rad; std in deg), both in the parent frame: the solver's
-    right-perturbation covariance rotated by R. Unobservable directions: std null,
-    cov entries null."""
-    T = np.asarray(T, dtype=float)
-    R = T[:3, :3]
-    M = np.zeros((6, 6))
-    M[:3, :3] = R
-    M[3:, 3:] = R
-    with np.errstate(invalid="ignore"):
-        cov_fin = np.where(np.isfinite(cov_right), cov_right, 0.0)
-        cov = M @ cov_fin @ M.T
-    bad_dof = ~np.isfinite(np.diag(cov_right))
-    if bad_dof.any():  # an infinite right-frame variance spreads to every parent axis it touches
-        touched = (np.abs(M[:, bad_dof]) > 1e-9).any(axis=1)
-        cov[touched, :] = np.nan
-        cov[:, touched] = np.nan
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    names = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
-    scale = (1.0, 1.0, 1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi)
-    return {
-        "matrix": T.tolist(),
-        "xyzabc": formats.matrix_to_xyzabc(T).tolist(),
-        "quaternion_wxyz": formats.matrix_to_quaternion(T).tolist(),
-        "std": {n: (float(s * k) if np.isfinite(s) else None) for n, s, k in zip(names, std, scale)},
-        "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in cov],
-    }
 
 
 # ----------------------------------------------------------------------------- plan
@@ -309,122 +274,6 @@ def estimate(design, measurement, *, bench: Bench | None = None, pose_id: str | 
     return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
 
 
-# ----------------------------------------------------------------------------- calibrate
-
-
-@dataclass(frozen=True, eq=False)
-class CalibrationResult:
-    """X = ^E T_O and Z = ^W T_S from a bench session.
-
-    handeye: the final HandEyeResult (cov_X, cov_Z right perturbations, see handeye);
-    poses_used: ids in the solve; poses_rejected: [{"pose", "reason"}]; per_pose:
-    [{"pose", "handeye_chi2", "estimate_chi2_dof", "outlier"}] of every estimated pose;
-    p_value: of the chi2 model check; warnings; method; robot; bench (as measured)."""
-
-    X: np.ndarray
-    Z: np.ndarray
-    handeye: object
-    poses_used: tuple
-    poses_rejected: tuple
-    per_pose: tuple
-    chi2: float
-    dof: int
-    chi2_dof: float
-    p_value: float
-    method: str
-    robot: str
-    warnings: tuple = field(default=())
-    outlier_threshold: float = float("nan")
-
-    def to_json(self) -> dict:
-        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected."""
-        return {
-            "schema_version": SCHEMA_VERSION,
-            "Z": frame_dict(self.Z, self.handeye.cov_Z),
-            "X": frame_dict(self.X, self.handeye.cov_X),
-            "chi2_dof": float(self.chi2_dof),
-            "poses_used": list(self.poses_used),
-            "poses_rejected": list(self.poses_rejected),
-        }
-
-    def to_dict(self) -> dict:
-        """The full result file: to_json() plus the model check and per-pose table."""
-        return {**self.to_json(), "kind": "calibration_result", "method": self.method, "robot": self.robot,
-                "chi2": float(self.chi2), "dof": int(self.dof), "p_value": float(self.p_value),
-                "outlier_threshold_chi2": float(self.outlier_threshold),
-                "observable": bool(self.handeye.observable),
-                "null_directions": list(self.handeye.null_directions),
-                "per_pose": list(self.per_pose), "warnings": list(self.warnings),
-                "std_convention": "translation error and rotation-error vector of R_est R_true^T, parent frame "
-                                  "(Z: robot base {W}; X: flange {E}); cov (mm, rad)^2"}
-
-    def summary(self) -> str:
-        """Human summary (the numbers of to_dict())."""
-        d = self.to_json()
-        lines = [f"lensforge calibration ({self.method}, {self.robot}): {len(self.poses_used)} poses used, "
-                 f"{len(self.poses_rejected)} rejected",
-                 f"chi2/dof = {self.chi2_dof:.3g} (dof {self.dof}, p = {self.p_value:.3g})"]
-        for name, frame in (("Z = ^W T_S (sensor in the robot base)", "Z"), ("X = ^E T_O (lens in the flange)", "X")):
-            f = d[frame]
-            s = f["std"]
-
-            def fmt(v, k=1.0, nd=4):
-                return "n/a (unobservable)" if v is None else f"{v * k:.{nd}g}"
-            lines += [name,
-                      "  X Y Z (mm):  " + "  ".join(f"{v:.4f}" for v in f["xyzabc"][:3]),
-                      "  A B C (deg): " + "  ".join(f"{v:.5f}" for v in f["xyzabc"][3:]),
-                      "  quaternion (w x y z): " + "  ".join(f"{v:.8f}" for v in f["quaternion_wxyz"]),
-                      f"  1-sigma translation (um): {fmt(s['tx_mm'], 1e3)} {fmt(s['ty_mm'], 1e3)} {fmt(s['tz_mm'], 1e3)}",
-                      f"  1-sigma rotation (mdeg):  {fmt(s['rx_deg'], 1e3)} {fmt(s['ry_deg'], 1e3)} {fmt(s['rz_deg'], 1e3)}"]
-        for r in self.poses_rejected:
-            lines.append(f"rejected pose {r['pose']}: {r['reason']}")
-        for w in self.warnings:
-            lines.append(f"warning: {w}")
-        return "\n".join(lines) + "\n"
-
-    def residual_plot(self) -> bytes:
-        """PNG: hand-eye residual chi2 (6 DOF) and lens-fit chi2/dof per pose, with the
-        outlier threshold; outliers in red."""
-        import io
-
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        ids = [p["pose"] for p in self.per_pose]
-        he = np.array([p["handeye_chi2"] if p["handeye_chi2"] is not None else np.nan for p in self.per_pose])
-        ec = np.array([p["estimate_chi2_dof"] for p in self.per_pose])
-        col = ["tab:red" if p["outlier"] else "tab:blue" for p in self.per_pose]
-        fig, ax = plt.subplots(2, 1, figsize=(max(6, 0.35 * len(ids) + 2), 6), sharex=True)
-        ax[0].bar(ids, he, color=col)
-        ax[0].axhline(6.0, color="k", lw=0.8, ls=":", label="expected (6 DOF)")
-        ax[0].axhline(self.outlier_threshold, color="tab:red", lw=0.8, ls="--", label="outlier threshold")
-        ax[0].set_ylabel("hand-eye residual chi2 (6 DOF)")
-        ax[0].set_yscale("log")
-        ax[0].legend(fontsize=8)
-        ax[0].set_title(f"{self.method}: chi2/dof = {self.chi2_dof:.3g}, p = {self.p_value:.2g}")
-        ax[1].bar(ids, ec, color=col)
-        ax[1].axhline(1.0, color="k", lw=0.8, ls=":")
-        ax[1].set_ylabel("lens-pose fit chi2/dof")
-        ax[1].set_xlabel("pose id (red: flagged outlier)")
-        ax[1].tick_params(axis="x", labelrotation=90)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=120)
-        plt.close(fig)
-        return buf.getvalue()
-
-    def files(self) -> dict:
-        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""
-        return {"calibration.json": formats.dumps_json(self.to_dict()) + "\n",
-                "easy_handeye.yaml": formats.easy_handeye_yaml(self.Z),
-                "summary.txt": self.summary(),
-                "residuals.png": self.residual_plot()}
-
-
-OUTLIER_ALPHA = 1e-3  # family-wise false-alarm rate of the outlier test
-
 
 def _threshold(n: int, scale: float, alpha: float = OUTLIER_ALPHA) -> float:
     return float(chi2_dist.ppf(1.0 - alpha / max(n, 1), 6) * scale)
@@ -434,24 +283,6 @@ def _solve(A, B, C, noise):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return solve_handeye(A, B, method="ml", sigma=noise, cov_B=C, on_degenerate="warn")
-
-
-@dataclass(frozen=True, eq=False)
-class SessionData:
-    """A bench session's inputs, matched by pose id: what every calibration method gets.
-
-    ids (n,); A: (n, 4, 4) recorded flange poses (mm); z: (n, m) measured Zernikes (um,
-    Noll modes model.modes); model: ForwardModel of the design's lens on the bench as
-    measured (WFS order, pupil, wavelength); robot; scene: the robot's nominal cell
-    (initial guesses); rejected: [{"pose", "reason"}] so far (unmatched ids)."""
-
-    ids: tuple
-    A: np.ndarray
-    z: np.ndarray
-    model: ForwardModel
-    robot: RobotModel
-    scene: Scene
-    rejected: tuple = ()
 
 
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
@@ -484,27 +315,31 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
 
 
 def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
-              robot: RobotModel | str | None = None, method: str = "two-stage",
+              robot: RobotModel | str | None = None, method: str = "joint", tolerances="default",
               outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
     WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
     name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
-    CALIBRATION_METHODS name ("two-stage"; the joint as-built calibration registers
-    there when it lands); progress: optional callable (done, total) called after each
+    CALIBRATION_METHODS name ("joint", the default: the as-built lens estimated with
+    X and Z, ``session_joint``; "two-stage": nominal lens); tolerances: the tolerance
+    model of the joint method's lens prior ("default": the package's file, or a TOML
+    path; two-stage ignores it); progress: optional callable (done, total) called after each
     lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
     than 3 usable poses.
     """
     if method not in CALIBRATION_METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
     data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
-    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress)
+    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
 
 
-def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
+              tolerances=None) -> CalibrationResult:
     """Two-stage calibration of a matched session: lens poses one by one, then A X = Z B
-    by maximum likelihood, robust outlier test and chi2 model check (module docstring)."""
+    by maximum likelihood, robust outlier test and chi2 model check (module docstring).
+    tolerances: unused (the nominal lens is assumed)."""
     model, scene, robot = data.model, data.scene, data.robot
     rejected = list(data.rejected)
     common, A_all, z_all = data.ids, data.A, data.z
@@ -588,4 +423,11 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
                              warnings=tuple(warns), outlier_threshold=thr)
 
 
+def joint(data: SessionData, **kw) -> CalibrationResult:
+    """Joint as-built calibration of a matched session (``session_joint.joint_session``)
+    started from the two-stage solution."""
+    return joint_session(data, start=two_stage, **kw)
+
+
+CALIBRATION_METHODS["joint"] = joint
 CALIBRATION_METHODS["two-stage"] = two_stage

@@ -86,7 +86,12 @@ def calibrate_cmd(
                                      help="flange poses: CSV pose,X,Y,Z,A,B,C (mm/deg), CSV pose,x,y,z,qw,qx,qy,qz "
                                           "with '# units: m|mm', or JSON 4x4"),
     robot: Optional[str] = typer.Option(None, "--robot", help=_ROBOT_HELP),
-    method: str = typer.Option("two-stage", "--method", help="calibration method: a name of calibration.session.CALIBRATION_METHODS (default two-stage)"),
+    method: str = typer.Option("joint", "--method", help="calibration method (calibration.session.CALIBRATION_METHODS): "
+                                                         "joint (default; estimates the as-built lens with X and Z) "
+                                                         "or two-stage"),
+    tolerances: str = typer.Option("default", "-t", "--tolerances",
+                                   help="tolerance TOML of the joint method's as-built lens prior "
+                                        "('default': the package's file); recorded in calibration.json"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(Path("exports/calibration"), "-o", "--out", help="output folder"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
@@ -100,7 +105,7 @@ def calibrate_cmd(
         from ..calibration.session import calibrate
 
         res = calibrate(design, measurements, robot_poses, bench=_bench(bench), robot=robot, method=method,
-                        progress=cb)
+                        tolerances=tolerances, progress=cb)
     paths = write_bundle(out, res.files())
     info(res.summary().rstrip())
     info("files: " + ", ".join(str(v) for v in paths.values()))

@@ -127,9 +127,12 @@ NEES_3SIGMA_6DOF = float(chi2_dist.ppf(math.erf(3 / math.sqrt(2)), 6))
 
 
 def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
-                   robot: RobotModel | str | None = None, n: int = 12, progress=None) -> dict:
+                   robot: RobotModel | str | None = None, n: int = 12, method: str = "joint",
+                   calibration_tolerances="default", progress=None) -> dict:
     """Simulate ``n_sessions`` seeded sessions (seeds seed .. seed + n_sessions - 1, one
     shared plan), calibrate each through the files a real session writes, and score Z.
+    method: the calibrate method ("joint", the default, or "two-stage");
+    calibration_tolerances: the joint method's prior (as calibrate's ``tolerances``).
 
     Returns {"nees": (k,) e^T cov_Z^-1 e of Z (right perturbation, 6 DOF), "inside_3sigma":
     fraction with NEES <= NEES_3SIGMA_6DOF (the 3-sigma-equivalent ellipsoid), "inside_3sigma_each_axis":
@@ -145,7 +148,8 @@ def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, b
             s = simulate_session(lens, tolerances=tolerances, seed=seed + k, bench=bench, session_plan=p)
             paths = write_bundle(Path(tmp) / f"s{k}", s.files())
             try:
-                r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench, robot=p.robot)
+                r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench, robot=p.robot,
+                              method=method, tolerances=calibration_tolerances)
             except LensforgeError as e:
                 failed.append(f"seed {seed + k}: {e}")
                 continue

@@ -1,0 +1,137 @@
+"""The joint as-built calibration of a bench session (``calibrate(..., method="joint")``).
+
+A start method (``session.two_stage``, given by ``session.joint``) runs first on the matched session; its
+X, Z start the joint maximum-likelihood calibration (``joint.joint_calibrate_from``)
+on the raw Zernike vectors and the recorded flange poses, then the robot program's
+nominal X, Z (the cell's) if the chi2 test flags the first fit (or two-stage failed).
+theta, the as-built lens parameters, is chosen from the tolerance model over the lens
+poses the start predicts (``lens_params.parameterise``); its prior is N(0, I) in
+units of the tolerances.
+
+Per pose the result reports the robot-error chi2 a_i^T Sigma_A^-1 a_i (6 DOF, in the
+plot's hand-eye row) and the whitened Zernike residual chi2 / m (the lens-fit row).
+Poses the start leaves unlit are rejected; one robust outlier pass (Bonferroni chi2
+quantile on the Zernike residual, scaled by the median over its expectation, as the
+two-stage test) rejects poses and refits once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ..errors import LensforgeError
+from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+from ..optics.pose import invert_poses, matrix_to_pose
+from .joint import JointProblem, joint_calibrate_from
+from .lens_params import parameterise
+from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData
+
+__all__ = ["JointFrames", "joint_session", "resolve_tolerances"]
+
+
+@dataclass(frozen=True, eq=False)
+class JointFrames:
+    """The X, Z part of a joint result in the shape CalibrationResult.handeye has
+    (cov_X, cov_Z right perturbations, (mm, rad)^2, from the joint Fisher information)."""
+
+    X: np.ndarray
+    Z: np.ndarray
+    cov_X: np.ndarray
+    cov_Z: np.ndarray
+    joint: object  # the JointCalibrationResult
+    observable: bool = True
+    null_directions: tuple = ()
+    warnings: tuple = field(default=())
+
+
+def resolve_tolerances(tolerances) -> tuple[Tolerances, str]:
+    """(Tolerances, label) of "default" / None (the package's default file), a TOML path or Tolerances."""
+    if tolerances is None or (isinstance(tolerances, str) and tolerances == "default"):
+        return load_tolerances(DEFAULT_TOLERANCES_FILE), str(DEFAULT_TOLERANCES_FILE)
+    if isinstance(tolerances, Tolerances):
+        return tolerances, "given Tolerances"
+    return load_tolerances(tolerances), str(Path(tolerances))
+
+
+def _per_pose(bench, param, res, z, A, Tn, robot_cov):
+    """(zernike chi2 (n,), robot chi2 (n,)) of the used poses at the estimate."""
+    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True)
+    r = pb.residuals(res.X, res.Z, res.theta, res.robot_errors)[0]
+    return np.sum(r * r, axis=1), np.sum((res.robot_errors @ pb.WA.T) ** 2, axis=1)
+
+
+def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
+                  tolerances="default") -> CalibrationResult:
+    """Joint as-built calibration of a matched session (module docstring).
+
+    start: a calibration method (SessionData -> CalibrationResult, e.g.
+    ``session.two_stage``) whose X, Z start the fit (None: the cell's nominal X, Z only);
+    tolerances: the tolerance model of theta's prior ("default": the package's file,
+    a TOML path or Tolerances); recorded in the result."""
+    tol, tol_label = resolve_tolerances(tolerances)
+    model, scene, robot = data.model, data.scene, data.robot
+    bench, lens, Tn = model.bench, model.lens, scene.T_SO_nominal
+    robot_cov = robot.noise.cov
+    starts, warns = [], []
+    try:
+        if start is not None:
+            ts = start(data, outlier_alpha=outlier_alpha, progress=progress)
+            starts.append((ts.X, ts.Z))
+    except LensforgeError as e:
+        warns.append(f"{start.__name__} start failed ({e}); the joint fit starts from the robot cell's nominal X, Z")
+    starts.append((scene.X, scene.Z))
+    X0, Z0 = starts[0]
+    x_start = matrix_to_pose(invert_poses(Tn) @ invert_poses(Z0) @ data.A @ X0)
+    param = parameterise(bench, lens, tol, x_start)
+    ids = np.array(data.ids)
+    rejected = list(data.rejected)
+    keep = np.ones(len(ids), bool)
+    res = None
+    for attempt in range(2):
+        res = joint_calibrate_from(bench, param, data.z[keep], data.A[keep], Tn, starts, robot_cov,
+                                   alpha=outlier_alpha)
+        kept = np.flatnonzero(keep)
+        for k in kept[~res.used]:
+            rejected.append({"pose": str(ids[k]), "reason": "unlit at the start of the joint fit (left out)"})
+        keep[kept[~res.used]] = False
+        used_idx = np.flatnonzero(keep)
+        zc, rc = _per_pose(bench, param, res, data.z[used_idx], data.A[used_idx], Tn, robot_cov)
+        m = data.z.shape[1]
+        thr = float(chi2_dist.ppf(1.0 - outlier_alpha / len(used_idx), m)
+                    * max(1.0, float(np.median(zc)) / chi2_dist.median(m)))
+        out = zc > thr
+        if attempt == 0 and out.any() and (~out).sum() >= 3:
+            for k in used_idx[out]:
+                rejected.append({"pose": str(ids[k]), "reason": f"outlier: joint Zernike residual chi2 "
+                                 f"{zc[used_idx == k][0]:.3g} above the robust threshold {thr:.3g} ({m} DOF)"})
+            keep[used_idx[out]] = False
+            continue
+        break
+    per_pose = tuple({"pose": str(i), "handeye_chi2": float(c6), "estimate_chi2_dof": float(cz / m),
+                      "outlier": bool(o)} for i, c6, cz, o in zip(ids[used_idx], rc, zc, out))
+    if res.mismatch:
+        warns.append(f"model check failed: chi2/dof = {res.chi2 / res.dof:.3g} (p = {res.p_value:.2g}) even with "
+                     "the as-built lens estimated: the tolerance model, the robot repeatability or the sensor noise "
+                     "does not describe this bench; the reported 1-sigma are then too small")
+    if not res.converged:
+        warns.append(f"joint fit stopped after {res.iterations} iterations without meeting its tolerance")
+    s = res.summary()
+    names = [param.describe(i) for i in range(param.k)]
+    extra = {"tolerances": tol_label, "p_value": float(res.p_value), "outlier_threshold_zernike_chi2": thr,
+             "lens_parameters": {"theta": s["theta"], "theta_sigma": s["theta_sigma"], "directions": names,
+                                 "identifiable": [names[i] for i in np.flatnonzero(res.identifiable)],
+                                 "n_identifiable": s["n_identifiable"],
+                                 "units": "prior sigma of the tolerance model (prior N(0, 1))"},
+             "Z_std_known_lens": {"tx_mm": s["Z_sigma_known_lens_mm"][0], "ty_mm": s["Z_sigma_known_lens_mm"][1],
+                                  "tz_mm": s["Z_sigma_known_lens_mm"][2], "rx_deg": s["Z_sigma_known_lens_deg"][0],
+                                  "ry_deg": s["Z_sigma_known_lens_deg"][1], "rz_deg": s["Z_sigma_known_lens_deg"][2]},
+             "iterations": res.iterations, "converged": bool(res.converged)}
+    frames = JointFrames(X=res.X, Z=res.Z, cov_X=res.cov_X, cov_Z=res.cov_Z, joint=res)
+    return CalibrationResult(X=res.X, Z=res.Z, handeye=frames, poses_used=tuple(ids[used_idx].tolist()),
+                             poses_rejected=tuple(rejected), per_pose=per_pose, chi2=float(res.chi2),
+                             dof=int(res.dof), chi2_dof=float(res.chi2 / res.dof), p_value=float(res.p_value),
+                             method="joint", robot=robot.name, warnings=tuple(warns), extra=extra)

@@ -1,0 +1,202 @@
+"""What a bench-session calibration takes and returns: SessionData (the matched
+inputs every method gets), CalibrationResult (the stable JSON, summary, YAML and
+residual plot) and frame_dict (a calibrated frame's JSON block). Shared by the
+methods of ``session`` (two-stage) and ``session_joint`` (joint as-built).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..optics.shack_hartmann import ForwardModel
+from . import formats
+from .robot import RobotModel, Scene
+
+__all__ = ["CalibrationResult", "SessionData", "frame_dict", "OUTLIER_ALPHA", "SCHEMA_VERSION"]
+
+SCHEMA_VERSION = 1
+
+# ----------------------------------------------------------------------------- frames for output
+
+
+def frame_dict(T: np.ndarray, cov_right: np.ndarray) -> dict:
+    """JSON block of a calibrated frame: matrix (4x4, mm), xyzabc (mm, deg, KUKA),
+    quaternion_wxyz, std {tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg} and cov (6x6).
+
+    std and cov are of the translation error t_est - t_true (mm) and the rotation-error
+    vector of R_est R_true^T (rad; std in deg), both in the parent frame: the solver's
+    right-perturbation covariance rotated by R. Unobservable directions: std null,
+    cov entries null."""
+    T = np.asarray(T, dtype=float)
+    R = T[:3, :3]
+    M = np.zeros((6, 6))
+    M[:3, :3] = R
+    M[3:, 3:] = R
+    with np.errstate(invalid="ignore"):
+        cov_fin = np.where(np.isfinite(cov_right), cov_right, 0.0)
+        cov = M @ cov_fin @ M.T
+    bad_dof = ~np.isfinite(np.diag(cov_right))
+    if bad_dof.any():  # an infinite right-frame variance spreads to every parent axis it touches
+        touched = (np.abs(M[:, bad_dof]) > 1e-9).any(axis=1)
+        cov[touched, :] = np.nan
+        cov[:, touched] = np.nan
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    names = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
+    scale = (1.0, 1.0, 1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi)
+    return {
+        "matrix": T.tolist(),
+        "xyzabc": formats.matrix_to_xyzabc(T).tolist(),
+        "quaternion_wxyz": formats.matrix_to_quaternion(T).tolist(),
+        "std": {n: (float(s * k) if np.isfinite(s) else None) for n, s, k in zip(names, std, scale)},
+        "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in cov],
+    }
+
+
+
+# ----------------------------------------------------------------------------- calibrate
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """X = ^E T_O and Z = ^W T_S from a bench session.
+
+    handeye: the final HandEyeResult (cov_X, cov_Z right perturbations, see handeye);
+    poses_used: ids in the solve; poses_rejected: [{"pose", "reason"}]; per_pose:
+    [{"pose", "handeye_chi2", "estimate_chi2_dof", "outlier"}] of every estimated pose;
+    p_value: of the chi2 model check; warnings; method; robot; bench (as measured)."""
+
+    X: np.ndarray
+    Z: np.ndarray
+    handeye: object
+    poses_used: tuple
+    poses_rejected: tuple
+    per_pose: tuple
+    chi2: float
+    dof: int
+    chi2_dof: float
+    p_value: float
+    method: str
+    robot: str
+    warnings: tuple = field(default=())
+    outlier_threshold: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected,
+        method, and the method's own keys (``extra``; joint: tolerances, p_value,
+        lens_parameters, ...)."""
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "Z": frame_dict(self.Z, self.handeye.cov_Z),
+            "X": frame_dict(self.X, self.handeye.cov_X),
+            "chi2_dof": float(self.chi2_dof),
+            "poses_used": list(self.poses_used),
+            "poses_rejected": list(self.poses_rejected),
+            "method": self.method,
+            **self.extra,
+        }
+
+    def to_dict(self) -> dict:
+        """The full result file: to_json() plus the model check and per-pose table."""
+        return {**self.to_json(), "kind": "calibration_result", "method": self.method, "robot": self.robot,
+                "chi2": float(self.chi2), "dof": int(self.dof), "p_value": float(self.p_value),
+                "outlier_threshold_chi2": (float(self.outlier_threshold) if np.isfinite(self.outlier_threshold)
+                                          else None),
+                "observable": bool(self.handeye.observable),
+                "null_directions": list(self.handeye.null_directions),
+                "per_pose": list(self.per_pose), "warnings": list(self.warnings),
+                "std_convention": "translation error and rotation-error vector of R_est R_true^T, parent frame "
+                                  "(Z: robot base {W}; X: flange {E}); cov (mm, rad)^2"}
+
+    def summary(self) -> str:
+        """Human summary (the numbers of to_dict())."""
+        d = self.to_json()
+        lines = [f"lensforge calibration ({self.method}, {self.robot}): {len(self.poses_used)} poses used, "
+                 f"{len(self.poses_rejected)} rejected",
+                 f"chi2/dof = {self.chi2_dof:.3g} (dof {self.dof}, p = {self.p_value:.3g})"]
+        lp = self.extra.get("lens_parameters")
+        if lp is not None:
+            lines.append(f"as-built lens: {len(lp['theta'])} parameters from {self.extra['tolerances']}, "
+                         f"{lp['n_identifiable']} identified by the data (1-sigma < half the prior)")
+        for name, frame in (("Z = ^W T_S (sensor in the robot base)", "Z"), ("X = ^E T_O (lens in the flange)", "X")):
+            f = d[frame]
+            s = f["std"]
+
+            def fmt(v, k=1.0, nd=4):
+                return "n/a (unobservable)" if v is None else f"{v * k:.{nd}g}"
+            lines += [name,
+                      "  X Y Z (mm):  " + "  ".join(f"{v:.4f}" for v in f["xyzabc"][:3]),
+                      "  A B C (deg): " + "  ".join(f"{v:.5f}" for v in f["xyzabc"][3:]),
+                      "  quaternion (w x y z): " + "  ".join(f"{v:.8f}" for v in f["quaternion_wxyz"]),
+                      f"  1-sigma translation (um): {fmt(s['tx_mm'], 1e3)} {fmt(s['ty_mm'], 1e3)} {fmt(s['tz_mm'], 1e3)}",
+                      f"  1-sigma rotation (mdeg):  {fmt(s['rx_deg'], 1e3)} {fmt(s['ry_deg'], 1e3)} {fmt(s['rz_deg'], 1e3)}"]
+        for r in self.poses_rejected:
+            lines.append(f"rejected pose {r['pose']}: {r['reason']}")
+        for w in self.warnings:
+            lines.append(f"warning: {w}")
+        return "\n".join(lines) + "\n"
+
+    def residual_plot(self) -> bytes:
+        """PNG: hand-eye residual chi2 (6 DOF) and lens-fit chi2/dof per pose, with the
+        outlier threshold; outliers in red."""
+        import io
+
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        ids = [p["pose"] for p in self.per_pose]
+        he = np.array([p["handeye_chi2"] if p["handeye_chi2"] is not None else np.nan for p in self.per_pose])
+        ec = np.array([p["estimate_chi2_dof"] for p in self.per_pose])
+        col = ["tab:red" if p["outlier"] else "tab:blue" for p in self.per_pose]
+        fig, ax = plt.subplots(2, 1, figsize=(max(6, 0.35 * len(ids) + 2), 6), sharex=True)
+        ax[0].bar(ids, he, color=col)
+        ax[0].axhline(6.0, color="k", lw=0.8, ls=":", label="expected (6 DOF)")
+        if np.isfinite(self.outlier_threshold):
+            ax[0].axhline(self.outlier_threshold, color="tab:red", lw=0.8, ls="--", label="outlier threshold")
+        ax[0].set_ylabel("hand-eye residual chi2 (6 DOF)")
+        ax[0].set_yscale("log")
+        ax[0].legend(fontsize=8)
+        ax[0].set_title(f"{self.method}: chi2/dof = {self.chi2_dof:.3g}, p = {self.p_value:.2g}")
+        ax[1].bar(ids, ec, color=col)
+        ax[1].axhline(1.0, color="k", lw=0.8, ls=":")
+        ax[1].set_ylabel("lens-pose fit chi2/dof")
+        ax[1].set_xlabel("pose id (red: flagged outlier)")
+        ax[1].tick_params(axis="x", labelrotation=90)
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=120)
+        plt.close(fig)
+        return buf.getvalue()
+
+    def files(self) -> dict:
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""
+        return {"calibration.json": formats.dumps_json(self.to_dict()) + "\n",
+                "easy_handeye.yaml": formats.easy_handeye_yaml(self.Z),
+                "summary.txt": self.summary(),
+                "residuals.png": self.residual_plot()}
+
+
+OUTLIER_ALPHA = 1e-3  # family-wise false-alarm rate of the outlier test
+
+
+@dataclass(frozen=True, eq=False)
+class SessionData:
+    """A bench session's inputs, matched by pose id: what every calibration method gets.
+
+    ids (n,); A: (n, 4, 4) recorded flange poses (mm); z: (n, m) measured Zernikes (um,
+    Noll modes model.modes); model: ForwardModel of the design's lens on the bench as
+    measured (WFS order, pupil, wavelength); robot; scene: the robot's nominal cell
+    (initial guesses); rejected: [{"pose", "reason"}] so far (unmatched ids)."""
+
+    ids: tuple
+    A: np.ndarray
+    z: np.ndarray
+    model: ForwardModel
+    robot: RobotModel
+    scene: Scene
+    rejected: tuple = ()
