@@ -10,7 +10,8 @@ accepted nonsense (exit 0 on an input that is known to be wrong); clean Ctrl-C (
 slow Ctrl-C (clean, but later than 2 s); unclean Ctrl-C. Parts: A random options, B
 named nonsense files through every command that reads them, C output targets (under a
 file, onto a folder, read-only and full tmpfs when root), D SIGINT at random moments
-and SIGKILL + resume. Writes JSON counts to stdout, details of bad attempts to stderr.
+and SIGKILL + resume, E the robot-side inputs (plan, simulate-session, calibrate,
+estimate: spoiled WFS and robot-pose CSVs, robot TOMLs, BOMs). Writes JSON counts to stdout, details of bad attempts to stderr.
 """
 
 from __future__ import annotations
@@ -167,6 +168,105 @@ def part_b():
             record(f"B poses {name}", ["handeye", name], outcome, err, nonsense=True)
 
 
+def _csv_edit(text: str, fn) -> str:
+    """Apply fn(rows) to the data rows of a lensforge CSV (comment lines kept as they are)."""
+    lines = text.splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    rows = [ln.split(",") for ln in lines if not ln.startswith("#")]
+    rows = fn(rows) or rows
+    return "\n".join(head + [",".join(r) for r in rows]) + "\n"
+
+
+def _set(r, c, v):
+    def f(rows):
+        rows[r][c] = v
+    return f
+
+
+def part_e():
+    """The robot-side commands: plan, simulate-session, calibrate, estimate (and handeye's
+    POSES file in part B) on a valid simulated session whose files are spoiled one way each."""
+    lens = "extended_polynomial"
+    with tempfile.TemporaryDirectory() as t:
+        t = Path(t)
+        outcome, _, err = run(["simulate-session", lens, "-n", "8", "--seed", "3", "-o", t / "sess"], t)
+        record("E simulate-session (valid)", ["simulate-session"], outcome, err)
+        if outcome != "success":
+            return
+        wfs0, rob0 = (t / "sess" / "wfs_zernike.csv").read_text(), (t / "sess" / "robot_poses.csv").read_text()
+        wfs_bad = {
+            "NaN entry": _csv_edit(wfs0, _set(1, 3, "nan")), "inf entry": _csv_edit(wfs0, _set(2, 4, "inf")),
+            "text entry": _csv_edit(wfs0, _set(1, 2, "abc")), "1e300 entry": _csv_edit(wfs0, _set(1, 2, "1e300")),
+            "3 modes": _csv_edit(wfs0, lambda rows: [r[:4] for r in rows]),
+            "short row": _csv_edit(wfs0, lambda rows: rows[:2] + [rows[2][:5]] + rows[3:]),
+            "ids mismatched": _csv_edit(wfs0, _set(1, 0, "99")),
+            "ids duplicated": _csv_edit(wfs0, _set(2, 0, "1")),
+            "wavelength 0": wfs0.replace("# wavelength_nm: 532.0", "# wavelength_nm: 0"),
+            "wavelength in m": wfs0.replace("# wavelength_nm: 532.0", "# wavelength_nm: 5.32e-7"),
+            "pupil radius 0": wfs0.replace("# pupil_radius_mm: 0.9", "# pupil_radius_mm: 0"),
+            "pupil radius 1e9": wfs0.replace("# pupil_radius_mm: 0.9", "# pupil_radius_mm: 1e9"),
+            "no rows": "\n".join(ln for ln in wfs0.splitlines() if ln.startswith("#") or ln.startswith("pose")),
+            "truncated": wfs0[: len(wfs0) // 2], "garbage": wfs0[:300] + "\udcff\x00\x80" + wfs0[300:],
+            "empty": "", "NUL": "\0" * 64,
+        }
+        rob_bad = {
+            "NaN entry": _csv_edit(rob0, _set(1, 2, "nan")), "text entry": _csv_edit(rob0, _set(1, 1, "x")),
+            "units m (values in mm)": rob0.replace("# units: mm", "# units: m"),
+            "units furlong": rob0.replace("# units: mm", "# units: furlong"),
+            "angles 1e6 deg": _csv_edit(rob0, _set(1, 4, "1e6")), "ids mismatched": _csv_edit(rob0, _set(3, 0, "77")),
+            "one pose": _csv_edit(rob0, lambda rows: rows[:2]), "truncated": rob0[: len(rob0) // 3],
+            "missing column": _csv_edit(rob0, lambda rows: [r[:6] for r in rows]),
+            "garbage": rob0[:50] + "\udcff\x00" + rob0[50:],
+        }
+        boms = {"wfs BOM (valid)": ("wfs", "\ufeff" + wfs0), "robot BOM (valid)": ("rob", "\ufeff" + rob0)}
+
+        def write(name, text):
+            return _write(t / name, text.encode("utf-8", "surrogateescape"))
+
+        def calibrate(w, r):
+            return ["calibrate", lens, "-m", w, "-r", r, "--method", "two-stage", "--no-progress", "-o", t / "cal"]
+
+        w_ok, r_ok = t / "sess" / "wfs_zernike.csv", t / "sess" / "robot_poses.csv"
+        for name, text in wfs_bad.items():
+            w = write("w.csv", text)
+            for args in (calibrate(w, r_ok), ["estimate", lens, "-m", w, "--pose", "1"]):
+                outcome, _, err = run(args, t)
+                record(f"E wfs {name}", args, outcome, err, nonsense=True)
+        for name, text in rob_bad.items():
+            r = write("r.csv", text)
+            outcome, _, err = run(calibrate(w_ok, r), t)
+            record(f"E robot poses {name}", ["calibrate", name], outcome, err, nonsense=True)
+        for name, (which, text) in boms.items():
+            f = write("bom.csv", text)
+            args = calibrate(f, r_ok) if which == "wfs" else calibrate(w_ok, f)
+            outcome, _, err = run(args, t)
+            record(f"E {name}", ["calibrate", name], outcome, err)
+        robot = (ROOT / "lensforge" / "calibration" / "robots" / "kr10_r1100_sixx.toml").read_text()
+        robots = {"reach -1": robot.replace("reach_mm = 1101.0", "reach_mm = -1"),
+                  "repeatability 0": robot.replace("repeatability_mm = 0.02", "repeatability_mm = 0"),
+                  "axis zero": robot.replace("axis = [0.0, 0.0, -1.0]", "axis = [0.0, 0.0, 0.0]", 1),
+                  "limits reversed": robot.replace("limits_deg = [-170.0, 170.0]", "limits_deg = [170.0, -170.0]"),
+                  "origin NaN": robot.replace("origin_mm = [0.0, 0.0, 400.0]", "origin_mm = [nan, 0.0, 400.0]"),
+                  "kinematics bogus": robot.replace('kinematics = "urdf"', 'kinematics = "magic"'),
+                  "no joints": robot.split("[[joints]]")[0], "BOM (valid)": "\ufeff" + robot,
+                  "truncated": robot[: len(robot) // 2]}
+        for name, text in robots.items():
+            rb = write("robot.toml", text)
+            nonsense = "valid" not in name
+            for args in (["plan", lens, "--robot", rb, "-n", "8", "-o", t / "plan"],
+                         ["simulate-session", lens, "--robot", rb, "-n", "8", "-o", t / "s2"]):
+                outcome, _, err = run(args, t)
+                record(f"E robot {name}", args, outcome, err, nonsense=nonsense)
+                for d in ("plan", "s2"):
+                    subprocess.run(["rm", "-rf", str(t / d)])
+        for opt, vals in (("-n", ["0", "2", "-3", "100000"]), ("--seed", ["-1", "1e3"])):
+            for v in vals:
+                for cmd in ("plan", "simulate-session"):
+                    args = [cmd, lens, opt, v, "-o", t / f"o-{cmd}-{v}"]
+                    outcome, _, err = run(args, t)
+                    record(f"E {cmd} {opt} {v}", args, outcome, err)
+
+
 def _mount_tmpfs(path: Path, opts: str) -> bool:
     if os.geteuid() != 0:
         return False
@@ -282,7 +382,7 @@ def main_() -> None:
     ap.add_argument("--random", type=int, default=200)
     ap.add_argument("--signals", type=int, default=30)
     ap.add_argument("--seed", type=int, default=12)
-    ap.add_argument("--parts", default="ABCD")
+    ap.add_argument("--parts", default="ABCDE")
     a = ap.parse_args()
     rnd = random.Random(a.seed)
     t0 = time.time()
@@ -294,6 +394,8 @@ def main_() -> None:
         part_c()
     if "D" in a.parts:
         part_d(a.signals, rnd)
+    if "E" in a.parts:
+        part_e()
     for b in bad:
         print(json.dumps(b), file=sys.stderr)
     total = {k: v for k, v in counts.items() if ":" not in k}

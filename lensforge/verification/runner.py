@@ -259,13 +259,18 @@ def _lock(path: Path) -> int:
     except OSError as e:
         raise ConfigError(f"store {path}: cannot create its lock file ({e.strerror}); "
                           "check the output folder's permissions and free space") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    t_end = time.monotonic() + 1.0  # a writer killed a moment ago may still be exiting (its lock goes with it)
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd
+        except OSError:
+            if time.monotonic() < t_end:
+                time.sleep(0.05)
+                continue
         os.close(fd)
         raise ConfigError(f"store {path}: another lensforge process is writing this study; wait for it "
                           "to finish or choose another output folder") from None
-    return fd
 
 
 @dataclass(frozen=True)
