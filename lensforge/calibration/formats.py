@@ -152,7 +152,7 @@ class WfsData:
 
 def _read_text(path: Path, what: str) -> str:
     try:
-        return path.read_text()
+        return path.read_text(encoding="utf-8-sig")  # a UTF-8 BOM (Excel, Notepad) is not data
     except FileNotFoundError:
         raise ConfigError(f"{what} {path}: not found") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -272,6 +272,7 @@ def read_xyzabc_csv(path) -> PoseTable:
     names = ["pose", "x", "y", "z", "a", "b", "c"]
     _check_header(path, header, names)
     ids, v, nos = _numeric_rows(path, rows, ["pose", "X", "Y", "Z", "A", "B", "C"])
+    _check_range(path, v[:, 3:], nos, ["A", "B", "C"], MAX_ANGLE_DEG, "deg")
     return PoseTable(tuple(ids), xyzabc_to_matrix(v), str(path), tuple(nos))
 
 
@@ -382,12 +383,29 @@ def _wfs_header(path: Path, comments: dict) -> dict:
     return h
 
 
+MIN_WFS_ORDER = 3  # a pose has 6 DOF: order 3 is the first with >= 6 modes besides piston (9)
+MAX_ZERNIKE_UM = 1e4  # ASSUMPTION: 1 cm of wavefront, far beyond any Shack-Hartmann sensor's range
+MAX_ANGLE_DEG = 360.0  # robot controllers report A, B, C within one turn
+
+
 def _check_modes(path: Path, k: int, where: str) -> int:
     order = _order_of(k)
     if order is None or order < 1:
         raise ConfigError(f"{path}: {where}: {k} Zernike modes is not a complete radial order "
                           "(3, 6, 10, 15, 21, ... modes with piston); export all modes up to the fit order")
+    if order < MIN_WFS_ORDER:
+        raise ConfigError(f"{path}: {where}: {k} Zernike modes (radial order {order}) cannot fix a 6-DOF pose; "
+                          f"export all modes up to radial order {MIN_WFS_ORDER} or more (10 or more modes)")
     return order
+
+
+def _check_range(path: Path, v: np.ndarray, nos, names, limit: float, unit: str) -> None:
+    """Every |value| <= limit, else one line naming the row, field and limit."""
+    bad = np.argwhere(np.abs(v) > limit)
+    if bad.size:
+        r, c = bad[0]
+        raise ConfigError(f"{path}: row {nos[r]}, field {names[c]}: {v[r, c]:.6g} {unit} is beyond the plausible "
+                          f"{limit:g} {unit}; check the file's units and columns")
 
 
 def read_wfs_csv(path) -> WfsData:
@@ -408,6 +426,7 @@ def read_wfs_csv(path) -> WfsData:
         if len(f) != len(names):
             raise ConfigError(f"{path}: row {no}: {len(f) - 1} Zernike modes, expected {k} (as in the header)")
     ids, z, nos = _numeric_rows(path, rows, ["pose"] + [f"Z{i}" for i in range(1, k + 1)])
+    _check_range(path, z, nos, [f"Z{i}" for i in range(1, k + 1)], MAX_ZERNIKE_UM, "um")
     return WfsData(tuple(ids), z, order, _wfs_header(path, comments), str(path), tuple(nos))
 
 
@@ -438,7 +457,9 @@ def read_wfs_json(path) -> WfsData:
     _ids_unique(path, ids, nos)
     comments = {key: (0, ", ".join(map(str, np.atleast_1d(data[key])))) for key in
                 ("wavelength_nm", "pupil_radius_mm", "pupil_center_mm") if key in data}
-    return WfsData(tuple(ids), np.array(zs, dtype=float), order, _wfs_header(path, comments), str(path), tuple(nos))
+    z = np.array(zs, dtype=float)
+    _check_range(path, z, nos, [f"zernike[{j}]" for j in range(k)], MAX_ZERNIKE_UM, "um")
+    return WfsData(tuple(ids), z, order, _wfs_header(path, comments), str(path), tuple(nos))
 
 
 WFS_READERS = {"wfs_csv": read_wfs_csv, "wfs_json": read_wfs_json}

@@ -19,7 +19,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from ..optics.bench import load_bench
-from ._common import emit_json, info
+from ._common import check_seed, emit_json, info
 
 # help texts name the registries without importing them (scipy): `lensforge --help` stays fast
 _ROBOT_HELP = "robot model: a name of calibration.robot.ROBOTS (kr10_r1100_sixx, ur5e) or a robot TOML (default kr10_r1100_sixx)"
@@ -62,6 +62,7 @@ def plan_cmd(
     from ..calibration.formats import write_bundle
     from ..calibration.session import plan
 
+    check_seed(seed)
     p = plan(design, bench=_bench(bench), robot=robot, n=n, seed=seed)
     fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
     if fm == ("auto",):
@@ -156,6 +157,7 @@ def simulate_session_cmd(
 
     from ..verification.session_sim import simulate_session
 
+    check_seed(seed)
     tol = None if tolerances.lower() == "none" else tolerances
     s = simulate_session(design, tolerances=tol, seed=seed, bench=_bench(bench), robot=robot, n=n)
     paths = write_bundle(out, s.files())
