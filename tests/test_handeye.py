@@ -90,7 +90,9 @@ def test_permutation_invariance():
         r2 = solve_handeye(A[p], B[p], m, sigma=NOISE, cov_B=COV_B)
         assert np.abs(_err(r1.X, r2.X) / r1.std_X).max() < 1e-5
         assert np.abs(_err(r1.Z, r2.Z) / r1.std_Z).max() < 1e-5
-        assert np.allclose(r1.residuals[p], r2.residuals, atol=1e-9)
+        # the same 1e-5 of the solution's spread, seen in the residuals (measured <= 2e-11 of a
+        # 0.0115 scale under OpenBLAS Prescott and Haswell; a mis-permuted residual is O(scale))
+        assert np.abs(r1.residuals[p] - r2.residuals).max() < 1e-5 * np.abs(r1.residuals).max()
 
 
 def test_inverted_formulation_gives_same_answer():

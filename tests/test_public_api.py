@@ -53,6 +53,7 @@ def test_zernike_and_pose_helpers_at_top_level_round_trip():
         assert lf.nm_to_noll(*lf.noll_to_nm(j)) == j
     assert lf.noll_to_osa(4) == 4 and lf.noll_to_osa(2) == 2 and lf.noll_to_thorlabs(1) == 1  # defocus, tilt x, piston
     x = np.array([1.0, -2.0, 3.0, 0.1, -0.2, 0.3])
-    np.testing.assert_allclose(lf.matrix_to_pose(lf.pose_to_matrix(x)), x, atol=1e-14)
+    tol = 64 * np.finfo(float).eps * np.abs(x).max()  # round-off of a few 3x3 products, any BLAS kernel
+    np.testing.assert_allclose(lf.matrix_to_pose(lf.pose_to_matrix(x)), x, atol=tol)
     T = lf.pose_to_matrix(x)
-    np.testing.assert_allclose(lf.invert_poses(T) @ T, np.eye(4), atol=1e-14)
+    np.testing.assert_allclose(lf.invert_poses(T) @ T, np.eye(4), atol=tol)

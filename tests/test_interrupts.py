@@ -1,0 +1,98 @@
+"""The ``lensforge`` supervisor (lensforge.interrupts.supervise): Ctrl-C is answered even while
+the command's process is stuck in one C call that holds the GIL (as OCP's initialisation
+does), the command's exit status passes through, and the command dies with its supervisor.
+
+Latencies are asserted generously (< 5 s); the figures are benchmarks/sigint_latency.py's.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from lensforge.interrupts import alive
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_PROG = """
+import os, sys
+from lensforge.interrupts import Interrupted, hard_exit, sigint_guard, supervise
+with sigint_guard():
+    try:
+        supervise()
+        print(os.getpid(), flush=True)
+        {body}
+    except Interrupted:
+        hard_exit()
+"""
+# one C call holding the GIL for minutes: no Python signal handler or thread runs meanwhile
+_STUCK = "sum(range(10**13))"
+
+
+def _start(body: str, **env):
+    return subprocess.Popen([sys.executable, "-c", _PROG.format(body=body)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT), **env})
+
+
+def _child_pid(p) -> int:
+    return int(p.stdout.readline())
+
+
+def _gone(pid: int, timeout: float = 5.0) -> bool:
+    t0 = time.monotonic()
+    while alive(pid):
+        if time.monotonic() - t0 > timeout:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_ctrl_c_while_the_command_holds_the_gil():
+    p = _start(_STUCK)
+    child = _child_pid(p)
+    assert child != p.pid  # the command runs in the supervisor's child
+    time.sleep(0.3)
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    dt = time.monotonic() - t0
+    assert p.returncode == 130 and err == "error: interrupted\n", err
+    assert dt < 5.0, f"took {dt:.2f} s"
+    assert _gone(child)
+
+
+def test_ctrl_c_unwinds_a_responsive_command_and_prints_once():
+    p = _start("import time\n        while True: time.sleep(0.01)")
+    _child_pid(p)
+    os.kill(p.pid, signal.SIGINT)  # like a terminal: the supervisor forwards, the child unwinds
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and err == "error: interrupted\n", err
+
+
+@pytest.mark.parametrize("body, code", [("sys.exit(3)", 3), ("sys.exit(0)", 0),
+                                        ("os.kill(os.getpid(), 15)", -15)])
+def test_exit_status_passes_through(body, code):
+    p = _start(body)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == code, err
+    assert "error:" not in err
+
+
+def test_sigkill_of_the_supervisor_ends_the_command():
+    p = _start(_STUCK)
+    child = _child_pid(p)
+    p.kill()
+    p.communicate(timeout=60)
+    assert _gone(child)
+
+
+def test_no_supervisor_when_disabled():
+    p = _start("sys.exit(0)", LENSFORGE_NO_SUPERVISOR="1")
+    out, _ = p.communicate(timeout=60)
+    assert int(out) == p.pid and p.returncode == 0
