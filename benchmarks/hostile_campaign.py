@@ -35,8 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tests"))
 
-from hostile import base_args, cli, command_options, poses_file  # noqa: E402  (the suite's helpers)
-from lensforge.interrupts import descendants  # noqa: E402
+from hostile import base_args, cli, command_options, mapped, poses_file  # noqa: E402  (the suite's helpers)
 from lensforge.optics.bench import Bench  # noqa: E402
 from lensforge.optics.lens import paper_lens  # noqa: E402
 
@@ -322,17 +321,6 @@ def _spawn(args, cwd):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _mapped(pid, name):
-    """``name`` is loaded in pid or below it (the command runs in the supervisor's child)."""
-    for p in [pid, *descendants(pid)]:
-        try:
-            if name in Path(f"/proc/{p}/maps").read_text():
-                return True
-        except OSError:
-            continue
-    return False
-
-
 def part_d(n, rnd: random.Random):
     cmds = [["export", "spherical", "--no-slicer", "-o", "ex"], ["study", "spherical", "-n", "300", "--workers", "0",
             "--no-progress", "-o", "st"], ["study", "spherical", "-n", "300", "--workers", "2", "--no-progress", "-o", "st"],
@@ -344,7 +332,7 @@ def part_d(n, rnd: random.Random):
         with tempfile.TemporaryDirectory() as t:
             p = _spawn(args, t)
             t0 = time.monotonic()  # wait until the interpreter has started (numpy mapped), then a random delay
-            while not _mapped(p.pid, "numpy") and p.poll() is None and time.monotonic() - t0 < 60:
+            while not mapped(p.pid, "numpy") and p.poll() is None and time.monotonic() - t0 < 60:
                 time.sleep(0.02)
             time.sleep(rnd.uniform(0.0, 12.0 if "workers" in args else 6.0))
             if p.poll() is not None:

@@ -5,7 +5,8 @@ duration of a command. The first SIGINT raises :class:`Interrupted` in the main
 thread -- a ``BaseException`` that is *not* ``KeyboardInterrupt``, so click, Dask and
 tornado do not turn it into "Aborted!" or log it -- and starts a watchdog: if the
 command has not unwound after ``grace_s`` (a stuck cleanup, a blocking call), the
-watchdog ends the process itself. A second SIGINT ends it at once. Ending means:
+watchdog ends the process itself. A second SIGINT ends it at once (one that follows the
+first within ``REPEAT_S`` is the same press, delivered twice). Ending means:
 the message, child processes (Dask workers) killed quietly, ``os._exit(130)``; the
 study store needs no cleanup (one SQLite transaction per trial: an interrupted
 transaction rolls back on the next open), and staged outputs are removed by their
@@ -261,7 +262,9 @@ def _wait_for_child(pid: int, watch: set, grace_s: float) -> None:
         now = time.monotonic()
         if deadline is not None and now >= deadline:
             _kill_tree(pid)
-            continue  # reaped on the next pass; the line is printed there
+            os.waitpid(pid, 0)  # SIGKILL: soon
+            _write_line(INTERRUPTED_LINE)
+            os._exit(EXIT_INTERRUPTED)
         wait = 0.1 if deadline is None else max(0.005, min(0.1, deadline - now))
         info = signal.sigtimedwait(watch, wait)
         if info is None or info.si_signo == signal.SIGCHLD:

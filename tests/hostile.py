@@ -159,3 +159,19 @@ def command_options(cmd):
     group = typer.main.get_command(app)
     return [(p.opts[0], bool(getattr(p, "is_flag", False))) for p in group.commands[cmd].params
             if p.param_type_name == "option" and p.opts[0] != "--help"]
+
+
+def mapped(pid: int, name: str) -> bool:
+    """``name`` (a shared library) is loaded in ``pid`` or a process below it: the command
+    runs in the child of the ``lensforge`` supervisor process."""
+    from pathlib import Path
+
+    from lensforge.interrupts import descendants
+
+    for p in [pid, *descendants(pid)]:
+        try:
+            if name in Path(f"/proc/{p}/maps").read_text():
+                return True
+        except OSError:
+            continue
+    return False

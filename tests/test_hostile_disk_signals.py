@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from hostile import assert_clean, cli
+from hostile import assert_clean, cli, mapped
 from lensforge.errors import ConfigError
 from lensforge.fileio import check_output, staged_dir
 from lensforge.interrupts import alive, descendants
@@ -170,24 +170,12 @@ def _assert_interrupted(rc, dt, err):
     assert dt < 5.0, f"took {dt:.2f} s"  # goal 2 s; measured by benchmarks/sigint_latency.py, not timed here
 
 
-def _mapped(pid: int, name: str) -> bool:
-    """``name`` is loaded in ``pid`` or a process below it (the command runs in the child of
-    the ``lensforge`` supervisor process)."""
-    for p in [pid, *descendants(pid)]:
-        try:
-            if name in Path(f"/proc/{p}/maps").read_text():
-                return True
-        except OSError:
-            continue
-    return False
-
-
 @pytest.mark.parametrize("stage", ["numpy", "scipy", "OCP.cpython"])
 def test_sigint_during_startup(tmp_path, stage):
     """Ctrl-C while the command modules import, including the seconds in which OCP's C
     extension initialises holding the interpreter (the ``lensforge`` supervisor answers)."""
     p = _start(["export", "spherical", "--no-slicer", "-o", tmp_path / "ex"], tmp_path)
-    _wait_for(lambda: _mapped(p.pid, stage) or p.poll() is not None)
+    _wait_for(lambda: mapped(p.pid, stage) or p.poll() is not None)
     kids = descendants(p.pid)
     _assert_interrupted(*_interrupt(p))
     assert not (tmp_path / "ex").exists()
