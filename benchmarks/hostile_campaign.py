@@ -384,22 +384,23 @@ def main_() -> None:
     a = ap.parse_args()
     rnd = random.Random(a.seed)
     t0 = time.time()
-    if "A" in a.parts:
-        part_a(a.random, rnd)
-    if "B" in a.parts:
-        part_b()
-    if "C" in a.parts:
-        part_c()
-    if "D" in a.parts:
-        part_d(a.signals, rnd)
-    if "E" in a.parts:
-        part_e()
+    parts = {"A": lambda: part_a(a.random, rnd), "B": part_b, "C": part_c, "D": lambda: part_d(a.signals, rnd),
+             "E": part_e}
+    for name, fn in parts.items():
+        if name in a.parts:
+            fn()
+            # the counts so far, one line per part: a campaign stopped by a timeout keeps them
+            print(json.dumps({"after_part": name, "outcomes": _totals()}), file=sys.stderr, flush=True)
     for b in bad:
         print(json.dumps(b), file=sys.stderr)
-    total = {k: v for k, v in counts.items() if ":" not in k}
+    total = _totals()
     print(json.dumps({"attempts": sum(total.values()), "outcomes": total,
                       "by_part": {k: v for k, v in sorted(counts.items()) if ":" in k},
                       "wall_s": round(time.time() - t0)}, indent=1))
+
+
+def _totals() -> dict:
+    return {k: v for k, v in counts.items() if ":" not in k}
 
 
 if __name__ == "__main__":
