@@ -181,9 +181,10 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     stops on its own (relative step < xtol in scaled units, or relative cost change
     < ftol with a step the linear model predicted well). The trust region lives in
     the bench's pose scales u = x / D (1 mm, 1 deg by default), starts at radius
-    ``trust_radius`` (1; a larger start saves iterations on well observed lenses but
-    lost 3 (radius 3) to 17 (radius 100) of 30 noisy paper-Zernike estimates) and
-    grows on good steps up to ``max_step`` (default unbounded); this is what keeps
+    ``trust_radius`` (1), widened to the first Gauss-Newton step when that step stays
+    inside the bench's pose range (a fixed larger start lost 3 (radius 3) to 17
+    (radius 100) of 30 noisy paper-Zernike estimates), and grows on good steps up to
+    ``max_step`` (default unbounded); this is what keeps
     a weakly observable DOF (the paper Zernike lens's rz, 1-sigma ~ 11 deg) from
     jumping out of the bench's range on the first Gauss-Newton step. Directions
     numerically null at x0 (``observability``, bench.rank_rtol) stay at x0 with inf
@@ -259,7 +260,17 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
         Ja = J[a] @ Pa  # estimated directions only
         A = np.einsum("pmi,pmj->pij", Ja, Ja)
         g = np.einsum("pmi,pm->pi", Ja, r[a])
-        du, _ = _trust_region_step(A + (eye - Pa), g, delta[a])  # pinned directions: identity, zero gradient
+        A = A + (eye - Pa)  # pinned directions: identity, zero gradient
+        if it == 1:
+            # a first Gauss-Newton step that stays inside the bench's pose range widens the
+            # initial region to its length: a well observed lens converges as fast as with
+            # undamped GN, a weak direction that would jump out keeps the small region
+            gn = _trust_region_step(A, g, np.full(a.size, np.inf))[0]
+            xg = x[a] + gn * D
+            inside = (np.all(np.abs(xg[:, :3]) <= lim.translation_mm, axis=1)
+                      & (np.linalg.norm(xg[:, 3:], axis=1) <= lim.rotation_rad))
+            delta[a] = np.where(inside, np.minimum(np.maximum(delta[a], np.linalg.norm(gn, axis=1)), cap), delta[a])
+        du, _ = _trust_region_step(A, g, delta[a])
         xn = x[a] + du * D
         rn_res = model.evaluate(xn, uv0=uv[a], check_range=False)
         n_evals += a.size
