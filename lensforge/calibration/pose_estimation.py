@@ -8,7 +8,8 @@ r(x) = L^-1 (h(x) - z), R = L L^T the Zernike noise covariance, by ONE solver,
 ``estimate_poses_batch``: a trust-region Levenberg-Marquardt batched over P poses (what
 the as-built study runs); one measurement is its P = 1 call. Each pose has its own
 trust region in the bench's pose scales (u = x / D: 1 mm, 1 deg), radius 1 at the
-start, doubled after a well predicted step on the boundary, quartered after a poor or
+start (widened to the first Gauss-Newton step if that step stays in the bench's pose
+range), doubled after a well predicted step on the boundary, quartered after a poor or
 rejected one; the step is the exact trust-region (LM) step, found in the eigenbasis of
 J^T J. The trust region keeps a weakly observable DOF (the paper Zernike lens's rz,
 1-sigma ~ 11 deg at nominal) from jumping out of the bench's range on the first
