@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from .errors import ConfigError
 
 __all__ = ["Num", "number", "number_array", "check_header", "check_ranges", "flatten",
-           "BENCH_RANGES", "LENS_RANGES", "TOLERANCE_RANGES", "POSE_TRANSLATION", "SCHEMA_VERSION",
+           "BENCH_RANGES", "LENS_RANGES", "POSE_TRANSLATION", "SCHEMA_VERSION",
            "MAX_LENSLETS", "DESIGN_KIND"]
 
 SCHEMA_VERSION = 1
@@ -215,27 +215,8 @@ LENS_RANGES = {
     "index_offset": Num(-0.5, 0.5, ""),
 }
 
-# Tolerances (TOML layout). Plausible manufacturing sizes for a printed and polished
-# lens (ASSUMPTION, generous): beyond these the file almost surely has a unit wrong
-# (e.g. um written as mm). Zero is always allowed: a perfect lens.
-TOLERANCE_RANGES = {
-    "polishing.depth_mm": Num(0.0, 1.0, "mm"),
-    "polishing.depth_sigma_mm": Num(0.0, 0.5, "mm"),
-    "polishing.rolloff_mm": Num(0.0, 0.5, "mm"),
-    "polishing.rolloff_sigma_mm": Num(0.0, 0.5, "mm"),
-    "form.rms_mm": Num(0.0, 0.1, "mm"),
-    "thickness.mean_mm": Num(-2.0, 2.0, "mm"),
-    "thickness.sigma_mm": Num(0.0, 1.0, "mm"),
-    "index.mean": Num(-0.1, 0.1, "(refractive index)"),
-    "index.sigma": Num(0.0, 0.05, "(refractive index)"),
-    "index.batch_sigma": Num(0.0, 0.05, "(refractive index)"),
-    "index.factor": Num(0.0, 100.0, "(multiple of the material's value)"),
-    "shrinkage.mean": Num(-0.2, 0.2, "(linear fraction)"),
-    "shrinkage.sigma": Num(0.0, 0.05, "(linear fraction)"),
-    "shrinkage.factor": Num(0.0, 100.0, "(multiple of the material's value)"),
-    "ripple.amplitude_mm": Num(0.0, 0.1, "mm"),
-    "ripple.period_mm": Num(0.0, 1.0, "mm", lo_open=True),
-}
+# Tolerances: each component's ranges live in its entry of manufacturing.tolerances.COMPONENT_SPECS
+# (TOLERANCE_RANGES there), beside its default and draw.
 
 # Pose matrices: translations within a robot cell (ASSUMPTION: 100 m), rotation entries |r| <= 1.
 POSE_TRANSLATION = Num(-1e5, 1e5, "mm")

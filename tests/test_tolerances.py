@@ -188,3 +188,58 @@ def test_tracer_uses_the_as_built_lens(lens, bench):
     assert z1.shape == z0.shape and np.all(np.isfinite(z1)) and not np.allclose(z1, z0)
     zn = np.asarray(lf.measure(bench, sample_as_built(lens, Tolerances.zero(), np.random.default_rng(2)), pose))
     assert np.array_equal(zn, z0)
+
+
+def _fingerprint(L):
+    """Every float of an as-built lens (exact: compared with ==)."""
+    out = {"thickness": L.thickness, "aperture": L.aperture, "edge": float(L.edge_diameter), "dn": L.index_offset}
+    for side in ("front", "back"):
+        cs = getattr(L, side).canonical()
+        out[side] = [float(cs.c), float(cs.k), [float(a) for a in cs.alpha], [float(a) for a in np.ravel(cs.poly)],
+                     list(np.shape(cs.poly)), float(cs.ripple_amplitude), float(cs.ripple_period)]
+    return out
+
+
+def test_seeded_draws_are_bit_identical_to_the_recorded_ones():
+    """tests/data/as_built_draws_v1.json was written by the sampler before the components
+    became registry entries (commit 568adb3): the same seeds must give exactly the same
+    as-built lenses (studies and budgets stay reproducible across the refactor)."""
+    import json
+    from pathlib import Path
+
+    want = json.loads((Path(__file__).parent / "data" / "as_built_draws_v1.json").read_text())
+    base = load_tolerances(DEFAULT_TOLERANCES_FILE)
+    tols = {"default_file": base,
+            "front_only_ripple": Tolerances(polished_surfaces=("front",), form_modes=(2, 4, 7, 11, 22)),
+            "scaled": base.scaled("form", 3).scaled("index", 2).scaled("shrinkage", 1.5).scaled("polishing", 0.5),
+            **{f"only_{n}": base.only(n) for n in Tolerances.component_names()}}
+    got = {}
+    for lname in ("zernike", "extended_polynomial"):
+        for tn, t in tols.items():
+            rng = np.random.default_rng(12345)
+            got[f"{lname}|{tn}"] = [_fingerprint(sample_as_built(lf.paper_lens(lname), t, rng, validate=False))
+                                    for _ in range(2)]
+    assert json.loads(json.dumps(got)) == want
+
+
+def test_registry_builds_tolerances_ranges_and_file_layout():
+    """One registry entry per component: the dataclass fields, the TOML layout of the
+    default file and the input ranges all come from it."""
+    import dataclasses
+    import tomllib
+
+    from lensforge.manufacturing.tolerances import COMPONENT_SPECS, TOLERANCE_RANGES
+
+    attrs = [f.attr for c in COMPONENT_SPECS.values() for f in c.fields]
+    assert [f.name for f in dataclasses.fields(Tolerances)] == attrs
+    doc = tomllib.loads(DEFAULT_TOLERANCES_FILE.read_text())
+    layout = {k: set(v) for k, v in Tolerances().to_dict().items() if isinstance(v, dict)}
+    assert layout == {k: set(v) for k, v in doc.items() if isinstance(v, dict)}
+    numeric = {f"{c.name}.{f.key}" for c in COMPONENT_SPECS.values() for f in c.fields if f.check is None}
+    assert numeric <= set(TOLERANCE_RANGES)
+    for c in COMPONENT_SPECS.values():
+        assert c.main[0] in attrs and set(c.scaled) <= set(attrs)
+    import pickle
+
+    t = Tolerances().scaled("form", 2.0)
+    assert pickle.loads(pickle.dumps(t)) == t  # studies ship it to Dask workers

@@ -4,17 +4,24 @@ One estimator interface, ``estimate_pose`` / ``estimate_pose_model``, with the
 estimators in the registry ``ESTIMATORS`` (name -> function; add one there):
 
 ``lm`` (default): nonlinear least squares on the noise-whitened residual
-r(x) = L^-1 (h(x) - z), R = L L^T the Zernike noise covariance. Many measurements at
-once: ``estimate_poses_batch`` (Levenberg-Marquardt batched over P poses, what the
-as-built study runs). One measurement: scipy's trust-region solver on the same
-objective, whose trust region keeps a weakly observable DOF (the paper Zernike lens's
-rz) from jumping out of the bench's range; the batch LM as P = 1 converged on 9 of 30
-noisy zernike estimates where this converges on 26. The Jacobian is
+r(x) = L^-1 (h(x) - z), R = L L^T the Zernike noise covariance, by ONE solver,
+``estimate_poses_batch``: a trust-region Levenberg-Marquardt batched over P poses (what
+the as-built study runs); one measurement is its P = 1 call. Each pose has its own
+trust region in the bench's pose scales (u = x / D: 1 mm, 1 deg), radius 1 at the
+start (widened to the first Gauss-Newton step if that step stays in the bench's pose
+range), doubled after a well predicted step on the boundary, quartered after a poor or
+rejected one; the step is the exact trust-region (LM) step, found in the eigenbasis of
+J^T J. The trust region keeps a weakly observable DOF (the paper Zernike lens's rz,
+1-sigma ~ 11 deg at nominal) from jumping out of the bench's range on the first
+Gauss-Newton step; Marquardt's damping (lambda diag(J^T J)) does not, since it damps
+a weak direction least (on 30 noisy paper-Zernike estimates it converged on 7, the
+trust region on 26; ``benchmarks/bench_pose_convergence.py``). The Jacobian is
 ``optics.sensitivity.jacobian`` (one batched trace of the 12 central-difference poses,
-or 6 forward ones), warm-started from the aimed rays. The reported covariance is the
-Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the noise levels of the bench
-the problem is locally linear, so this is the Cramer-Rao bound evaluated at the
-estimate, and chi2 = r^T r follows a chi-square law with m - 6 degrees of freedom.
+or 6 forward ones while far from the minimum), warm-started from the aimed rays. The
+reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
+noise levels of the bench the problem is locally linear, so this is the Cramer-Rao
+bound evaluated at the estimate, and chi2 = r^T r follows a chi-square law with
+m - 6 degrees of freedom.
 
 ``ukf``: the paper's baseline, an unscented Kalman filter on a static state (the
 pose), prior N(x0, P0) from the gripper/robot uncertainty model
@@ -54,7 +61,6 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..errors import ConfigError, PoseRangeError, PupilError, RankError
 from ..optics.bench import Bench
@@ -65,7 +71,7 @@ from ..optics.shack_hartmann import ForwardModel, check_pose_range
 from .initial_poses import prior_covariance
 
 __all__ = ["PoseEstimate", "BatchPoseEstimate", "UnobservableWarning", "WeakObservabilityWarning", "estimate_pose",
-           "estimate_pose_model", "estimate_poses_batch", "ESTIMATORS", "METHODS"]
+           "estimate_pose_model", "estimate_poses_batch", "ESTIMATORS", "METHODS", "STOP_REASONS"]
 
 
 class UnobservableWarning(UserWarning):
@@ -83,9 +89,11 @@ class BatchPoseEstimate:
     poses: (P, 6) mm, rad; cov: (P, 6, 6) Gauss-Newton covariance (J^T R^-1 J)^-1 at
     the estimate (inf on the diagonal of unobservable DOF); chi2: (P,) whitened
     residual sum of squares; converged: (P,) met the tolerance with the pupil lit
-    and in the bench's range; iterations: LM iterations run; n_evals: poses traced;
-    out_of_range: (P,) stopped outside the bench's pose range; observable: (P, 6)
-    DESIGN.md's statistical rule at x0 (``optics.sensitivity.observability``).
+    and in the bench's range; iterations: LM iterations run (the longest pose);
+    n_evals: poses traced; out_of_range: (P,) stopped outside the bench's pose range;
+    observable: (P, 6) DESIGN.md's statistical rule at x0
+    (``optics.sensitivity.observability``); status: (P,) why each pose stopped, a key
+    of ``STOP_REASONS``; n_iter: (P,) iterations of each pose.
     """
 
     poses: np.ndarray
@@ -96,6 +104,18 @@ class BatchPoseEstimate:
     n_evals: int
     out_of_range: np.ndarray = None
     observable: np.ndarray = None
+    status: np.ndarray = None
+    n_iter: np.ndarray = None
+
+
+# why a pose's iteration stopped (BatchPoseEstimate.status)
+STOP_REASONS = {
+    "converged": "converged (relative step or cost change below the tolerance)",
+    "flat": "converged (no descent left: the trust region shrank to nothing at a flat minimum)",
+    "far": "abandoned: the iterate left the bench's pose range by a factor 2",
+    "max_iter": "iteration limit reached",
+    "unlit": "the pupil is not lit at the initial pose",
+}
 
 
 def _whiten(Li, d):
@@ -108,17 +128,69 @@ def _whiten_jac(Li, J):
     return _whiten(Li, J.transpose(0, 2, 1)).transpose(0, 2, 1)
 
 
+def _trust_region_step(A, g, delta, n_newton: int = 30):
+    """Batched exact trust-region step: du minimising g.du + du.A du / 2 with |du| <= delta.
+
+    A: (P, n, n) symmetric positive semi-definite (Gauss-Newton J^T J); g: (P, n);
+    delta: (P,). The Levenberg-Marquardt step du = -(A + lam I)^-1 g with lam >= 0 the
+    smallest value that keeps the step inside the region, found by Newton's method on
+    1/|du(lam)| - 1/delta (More & Sorensen) in A's eigenbasis; lam = 0 (the Gauss-Newton
+    step) when that fits. Returns (du, lam)."""
+    w, Q = np.linalg.eigh(A)
+    w = np.clip(w, 0.0, None)
+    gq = np.einsum("pji,pj->pi", Q, g)
+    floor = 1e-15 * np.maximum(w[:, -1:], 1e-300)  # an exactly singular direction: a huge, finite GN step
+    lam = np.zeros(len(delta))
+    for _ in range(n_newton):
+        d = np.maximum(w + lam[:, None], floor)
+        norm = np.sqrt(np.sum((gq / d) ** 2, axis=1))
+        s3 = np.sum(gq**2 / d**3, axis=1)
+        outside = norm > delta * (1 + 1e-6)
+        if not outside.any():
+            break
+        step = np.divide(norm**2 * (norm - delta), s3 * delta, out=np.zeros_like(norm), where=outside & (s3 > 0))
+        lam = np.where(outside, lam + step, lam)
+    d = np.maximum(w + lam[:, None], floor)
+    du = -np.einsum("pij,pj->pi", Q, gq / d)
+    # Newton converges from below (lam too small, step slightly long): clip onto the boundary
+    n = np.linalg.norm(du, axis=1)
+    du *= np.minimum(1.0, delta / np.maximum(n, 1e-300))[:, None]
+    return du, lam
+
+
+@dataclass(frozen=True)
+class _Start:
+    """What ``estimate_pose_model`` already computed at x0 for one pose (saves a Jacobian)."""
+
+    uv: np.ndarray  # (1, ...) aimed rays
+    z: np.ndarray  # (1, m) h(x0)
+    Jw: np.ndarray  # (1, m, 6) whitened Jacobian
+    central: bool
+    basis: np.ndarray  # (6, k) estimated directions in scaled units
+    observable: np.ndarray  # (6,)
+    null: np.ndarray  # (6,) DOF moved by a numerically null direction
+
+
 def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLike, *, max_iter: int = 40,
                          xtol: float = 1e-10, ftol: float = 1e-10, fast_start: bool = True,
-                         max_step: float | None = None) -> BatchPoseEstimate:
-    """Whitened least-squares pose estimates for P measurements at once (LM, batched).
+                         max_step: float | None = None, trust_radius: float = 1.0,
+                         _start: _Start | None = None) -> BatchPoseEstimate:
+    """Whitened least-squares pose estimates for P measurements at once (trust-region LM, batched).
 
-    z_measured: (P, m) Zernikes (um); x0: (P, 6) initial poses (mm, rad). Same
-    objective for every pose; each pose has its own damping and
+    z_measured: (P, m) Zernikes (um); x0: (P, 6) initial poses (mm, rad). The same
+    objective |L^-1 (h(x) - z)|^2 for every pose; each pose has its own trust region and
     stops on its own (relative step < xtol in scaled units, or relative cost change
-    < ftol). Pose directions numerically null at x0 (``observability``, bench.rank_rtol)
-    stay at x0 with inf variance. fast_start: forward-difference
-    Jacobians until the cost stalls (same fixed point, fewer traces).
+    < ftol with a step the linear model predicted well). The trust region lives in
+    the bench's pose scales u = x / D (1 mm, 1 deg by default), starts at radius
+    ``trust_radius`` (1), widened to the first Gauss-Newton step when that step stays
+    inside the bench's pose range (a fixed larger start lost 3 (radius 3) to 17
+    (radius 100) of 30 noisy paper-Zernike estimates), and grows on good steps up to
+    ``max_step`` (default unbounded); this is what keeps
+    a weakly observable DOF (the paper Zernike lens's rz, 1-sigma ~ 11 deg) from
+    jumping out of the bench's range on the first Gauss-Newton step. Directions
+    numerically null at x0 (``observability``, bench.rank_rtol) stay at x0 with inf
+    variance. fast_start: forward-difference Jacobians until the cost stalls (same
+    fixed point, fewer traces); otherwise central differences throughout.
     """
     Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
     x = np.array(np.atleast_2d(x0), dtype=float)
@@ -126,25 +198,38 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     bench = model.bench
     L = model.whitener
     D = np.asarray(bench.pose_scales, dtype=float)
+    eye = np.eye(6)
     n_evals = 0
 
-    res = model.evaluate(x, check_range=False)
-    n_evals += P
-    uv, zc, valid = res.uv.copy(), res.z.copy(), res.valid.copy()
+    J = np.zeros((P, Z.shape[1], 6))  # whitened, scaled: d r / d u
+    J_central = np.zeros(P, bool)
+    if _start is None:
+        res = model.evaluate(x, check_range=False)
+        n_evals += P
+        uv, zc, valid = res.uv.copy(), res.z.copy(), res.valid.copy()
+        need_J = valid.copy()
+    else:
+        uv, zc, valid = _start.uv.copy(), _start.z.copy(), np.ones(1, bool)
+        J[0] = _start.Jw[0] * D
+        J_central[0] = _start.central
+        need_J = np.zeros(1, bool)
     r = _whiten(L, zc - Z)
     cost = np.where(valid, np.sum(r * r, axis=1), np.inf)
-    lam = np.full(P, 1e-10)  # Gauss-Newton first; damp only after a rejected step
+    delta = np.full(P, float(trust_radius))  # trust radius, scaled units
+    cap = np.inf if max_step is None else float(max_step)
+    delta = np.minimum(delta, cap)
     active = valid.copy()
-    converged = np.zeros(P, bool)
-    J = np.zeros((P, Z.shape[1], 6))
-    need_J = valid.copy()
-    obs_mask = np.ones((P, 6), bool)  # not moved by a numerically null direction
+    status = np.where(valid, "max_iter", "unlit").astype(object)
+    n_iter = np.zeros(P, int)
+    proj = np.broadcast_to(eye, (P, 6, 6)).copy()  # projector on the estimated directions
+    null = np.zeros((P, 6), bool)  # DOF moved by a numerically null direction
     observable = np.ones((P, 6), bool)  # the statistical rule
     # Forward differences (half the traces) while far from the minimum; central ones
     # once the cost stalls, and only central-Jacobian steps may end the iteration, so
     # the fixed point J^T r = 0 is the central-difference one.
     near = np.full(P, not fast_start)
-    J_central = np.zeros(P, bool)
+    if _start is not None:
+        near[0] = _start.central or near[0]
     lim = bench.pose_limits
     first = True
     it = 0
@@ -153,7 +238,7 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
             idx = np.flatnonzero(active & need_J & (near == cen))
             if idx.size:
                 Jn = jacobian(model, x[idx], uv=uv[idx], z0=zc[idx], central=cen)[0]
-                J[idx] = _whiten_jac(L, Jn) * D  # scaled: d r / d u, u = x / D
+                J[idx] = _whiten_jac(L, Jn) * D
                 J_central[idx] = cen
                 n_evals += (12 if cen else 6) * idx.size
                 need_J[idx] = False
@@ -161,86 +246,99 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
             # observability at x0 (the rule of optics.sensitivity): numerically null
             # directions are pinned at x0; weak ones are estimated and flagged
             for p in np.flatnonzero(valid):
-                ob = observability(J[p] / D, D, bench.rank_rtol)
-                obs_mask[p] = np.isfinite(ob.std)
-                observable[p] = ob.observable
+                if _start is None:
+                    ob = observability(J[p] / D, D, bench.rank_rtol)
+                    basis, observable[p], null[p] = ob.basis, ob.observable, ~np.isfinite(ob.std)
+                else:
+                    basis, observable[p], null[p] = _start.basis, _start.observable, _start.null
+                proj[p] = basis @ basis.T
             first = False
         a = np.flatnonzero(active)
         if a.size == 0:
             break
-        Ja, ra = J[a] * obs_mask[a][:, None, :], r[a]
+        n_iter[a] += 1
+        Pa = proj[a]
+        Ja = J[a] @ Pa  # estimated directions only
         A = np.einsum("pmi,pmj->pij", Ja, Ja)
-        g = np.einsum("pmi,pm->pi", Ja, ra)
-        dA = np.einsum("pii->pi", A)
-        # Marquardt damping on the diagonal; unobservable directions pinned (identity, zero gradient)
-        M = A + (lam[a, None] * np.where(dA > 0, dA, 1.0) + (~obs_mask[a]))[:, :, None] * np.eye(6)[None]
-        du = -np.linalg.solve(M, g[..., None])[..., 0]
-        if max_step is not None:  # trust radius in scaled units (a weak direction cannot jump out of range)
-            du *= np.minimum(1.0, max_step / np.maximum(np.linalg.norm(du, axis=1), 1e-300))[:, None]
+        g = np.einsum("pmi,pm->pi", Ja, r[a])
+        A = A + (eye - Pa)  # pinned directions: identity, zero gradient
+        if it == 1:
+            # a first Gauss-Newton step that stays inside the bench's pose range widens the
+            # initial region to its length: a well observed lens converges as fast as with
+            # undamped GN, a weak direction that would jump out keeps the small region
+            gn = _trust_region_step(A, g, np.full(a.size, np.inf))[0]
+            xg = x[a] + gn * D
+            inside = (np.all(np.abs(xg[:, :3]) <= lim.translation_mm, axis=1)
+                      & (np.linalg.norm(xg[:, 3:], axis=1) <= lim.rotation_rad))
+            delta[a] = np.where(inside, np.minimum(np.maximum(delta[a], np.linalg.norm(gn, axis=1)), cap), delta[a])
+        du, _ = _trust_region_step(A, g, delta[a])
         xn = x[a] + du * D
         rn_res = model.evaluate(xn, uv0=uv[a], check_range=False)
         n_evals += a.size
         rn = _whiten(L, rn_res.z - Z[a])
         cn = np.where(rn_res.valid, np.sum(rn * rn, axis=1), np.inf)
-        acc = cn <= cost[a]
-        # predicted decrease of the linear model |r + J du|^2 - |r|^2
+        # predicted decrease of the linear model, |r|^2 - |r + J du|^2
         pred = -(2.0 * np.einsum("pi,pi->p", g, du) + np.einsum("pi,pij,pj->p", du, A, du))
+        actual = cost[a] - cn
+        rho = np.divide(actual, pred, out=np.zeros_like(pred), where=pred > 0)
+        acc = cn <= cost[a]
+        step = np.linalg.norm(du, axis=1)
         u_norm = np.linalg.norm(x[a] / D, axis=1)
-        tiny = ((np.linalg.norm(du, axis=1) <= xtol * (xtol + u_norm))
-                | (pred <= ftol * np.maximum(cost[a], 1e-300)))
+        small_step = step <= xtol * (xtol + u_norm)
+        small_cost = (actual <= ftol * cost[a]) & (rho > 0.25)
+        tiny = small_step | (pred <= ftol * np.maximum(cost[a], 1e-300))
+        # trust radius: shrink to a quarter of a poorly predicted step, double after a
+        # well predicted one that reached the boundary (More's rules, as scipy's trf)
+        shrink = ~acc | (rho < 0.25)
+        grow = acc & (rho > 0.75) & (step >= 0.95 * delta[a])
+        fwd_rej = ~acc & ~J_central[a]
+        new_delta = np.where(shrink & ~fwd_rej, 0.25 * step, np.where(grow, 2.0 * delta[a], delta[a]))
+        delta[a] = np.minimum(new_delta, cap)
         ai = a[acc]
-        small_step = tiny[acc]
-        small_cost = (cost[ai] - cn[acc]) <= ftol * cost[ai]
-        stalled = (cost[ai] - cn[acc]) <= 0.1 * cost[ai]
-        near[ai] |= stalled | small_step | small_cost
+        stalled = actual[acc] <= 0.1 * cost[ai]
+        near[ai] |= stalled | small_step[acc] | small_cost[acc]
         fin = J_central[ai]
-        small_step &= fin
-        small_cost &= fin
         x[ai], r[ai], cost[ai], zc[ai] = xn[acc], rn[acc], cn[acc], rn_res.z[acc]
         uv[ai] = rn_res.uv[acc]
-        lam[ai] = np.maximum(lam[ai] / 10.0, 1e-10)
         need_J[ai] = True
         rej = a[~acc]
         # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly;
         # a forward-difference J that fails to descend is replaced by the central one
-        fwd_rej = rej[~J_central[rej]]
-        near[fwd_rej] = True
-        need_J[fwd_rej] = True
-        rej = rej[J_central[rej]]
-        lam[rej] = np.maximum(lam[rej] * 10.0, 1e-4)
-        done = ai[small_step | small_cost]
-        converged[done] = True
+        fwd = rej[~J_central[rej]]
+        near[fwd] = True
+        need_J[fwd] = True
+        done = ai[fin & (small_step[acc] | small_cost[acc])]
+        status[done] = "converged"
         active[done] = False
-        stuck = rej[tiny[np.isin(a, rej)] | (lam[rej] > 1e12)]
-        converged[stuck] = True  # no descent direction left: a (possibly flat) minimum
+        rc = ~acc & J_central[a]
+        stuck = a[rc & (tiny | (delta[a] <= 1e-12 * (1.0 + u_norm)))]
+        status[stuck] = "flat"  # no descent direction left: a (possibly flat) minimum
         active[stuck] = False
         # an estimate far outside the bench's pose range is abandoned (reported out of range)
         far = ai[(np.abs(x[ai, :3]) > 2 * lim.translation_mm).any(axis=1)
                  | (np.linalg.norm(x[ai, 3:], axis=1) > 2 * lim.rotation_rad)]
-        converged[far] = True
+        status[far] = "far"
         active[far] = False
-    # covariance from the Jacobian at the last linearisation point
+    # covariance from the Jacobian at the last linearisation point, on the estimated directions
     cov = np.full((P, 6, 6), np.nan)
-    for p in np.flatnonzero(valid):
-        Jp = J[p][:, obs_mask[p]]
-        c = np.zeros((6, 6))
+    v = np.flatnonzero(valid)
+    if v.size:
+        Pv = proj[v]
+        Jv = J[v] @ Pv
+        F = np.einsum("pmi,pmj->pij", Jv, Jv) + (eye - Pv)
         try:
-            sub = np.linalg.inv(Jp.T @ Jp)
+            c = np.linalg.inv(F)
         except np.linalg.LinAlgError:
-            sub = np.linalg.pinv(Jp.T @ Jp)
-        c[np.ix_(obs_mask[p], obs_mask[p])] = sub
-        c *= np.outer(D, D)
-        for i in np.flatnonzero(~obs_mask[p]):
-            c[i, i] = np.inf
-        cov[p] = c
+            c = np.linalg.pinv(F)
+        c = (c - (eye - Pv)) * np.outer(D, D)
+        cov[v] = [_mark_unobservable(ci, nl) for ci, nl in zip(c, null[v])]
     in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
                 & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
-    ok = converged & np.isfinite(cost) & in_range
+    stopped = np.isin(status, ("converged", "flat", "far"))
+    ok = stopped & np.isfinite(cost) & in_range
     return BatchPoseEstimate(poses=x, cov=cov, chi2=np.where(np.isfinite(cost), cost, np.inf), converged=ok,
-                             iterations=it, n_evals=n_evals, out_of_range=converged & np.isfinite(cost) & ~in_range,
-                             observable=observable)
-
-
+                             iterations=it, n_evals=n_evals, out_of_range=stopped & np.isfinite(cost) & ~in_range,
+                             observable=observable, status=status, n_iter=n_iter)
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,8 +348,8 @@ class PoseEstimate:
     pose: (6,) estimate (mm, rad), relative to the nominal placement;
     cov: (6, 6) reported covariance (mm^2, mm rad, rad^2); inf on the diagonal of
     unobservable DOF; chi2: whitened residual sum of squares r^T R^-1 r at the
-    estimate; dof: m - (number of estimated DOF); iterations: Jacobian
-    evaluations (lm) or filter updates (ukf); converged: the solver met its
+    estimate; dof: m - (number of estimated DOF); iterations: trust-region
+    iterations (lm) or filter updates (ukf); converged: the solver met its
     tolerances and the estimate is measurable and in range; n_evals: poses
     traced by the forward model (cost measure: ~0.3 ms each on one core);
     message: solver message or why it failed; method: "lm" or "ukf";
@@ -355,6 +453,7 @@ class _Problem:
     basis: np.ndarray  # (6, k) estimated directions, scaled units u = x / D
     null: np.ndarray  # (6,) bool: DOF moved by a numerically null direction
     D: np.ndarray  # bench pose scales
+    observable: np.ndarray  # (6,) bool: DESIGN.md's statistical rule at x0
 
 
 def _mark_unobservable(cov: np.ndarray, null: np.ndarray) -> np.ndarray:
@@ -367,51 +466,17 @@ def _mark_unobservable(cov: np.ndarray, null: np.ndarray) -> np.ndarray:
 
 
 def _lm(prob: _Problem, *, jac: str = "central", max_iter: int = 50, tol: float = 1e-8, **_):
-    """Least squares on the whitened residual for one measurement: scipy's trust-region
-    reflective solver over the estimated subspace y (x = x0 + D V y), with the shared
-    finite-difference ``jacobian``. (For a single pose its trust region converges more
-    reliably along a weak direction than the batch LM's clipped steps; the objective,
-    Jacobian and covariance are the same as ``estimate_poses_batch``'s.)"""
-    model, x0, V, D = prob.model, prob.x0, prob.basis, prob.D
-    Linv = model.whitener
-    k0 = x0.tobytes()
-    state = {"uv": prob.uv0, "n": 0, "key": k0, "z": prob.z0, "ok": True, "jkey": k0, "J": prob.Jw0}
-
-    def at(x):
-        key = x.tobytes()
-        if state["key"] != key:
-            res = model.evaluate(x[None], uv0=state["uv"][None], check_range=False)
-            state["n"] += 1
-            if res.valid[0]:
-                state["uv"] = res.uv[0].copy()
-            state.update(key=key, z=res.z[0], ok=bool(res.valid[0]))
-        return state["z"], state["ok"]
-
-    def fun(y):
-        zx, ok = at(x0 + D * (V @ y))
-        return _whiten(Linv, zx - prob.z) if ok else np.full(prob.z.shape, np.nan)
-
-    def jac_(y):
-        x = x0 + D * (V @ y)
-        key = x.tobytes()
-        if state["jkey"] != key:
-            z0, _ = at(x)
-            J = jacobian(model, x[None], uv=state["uv"][None], z0=z0[None], central=jac == "central")[0][0]
-            state["n"] += 12 if jac == "central" else 6
-            state.update(jkey=key, J=_whiten(Linv, J.T).T)
-        return (state["J"] * D) @ V
-
-    sol = least_squares(fun, np.zeros(V.shape[1]), jac=jac_, method="trf", xtol=tol, ftol=tol, gtol=tol,
-                        max_nfev=max_iter, x_scale=1.0)
-    x = x0 + D * (V @ sol.x)
-    Jy = sol.jac
-    try:
-        cov_y = np.linalg.inv(Jy.T @ Jy)
-    except np.linalg.LinAlgError:
-        cov_y = np.linalg.pinv(Jy.T @ Jy)
-    cov = _mark_unobservable((V @ cov_y @ V.T) * np.outer(D, D), prob.null)
-    ok = bool(sol.success and sol.status > 0 and np.all(np.isfinite(sol.fun)))
-    return x, cov, ok, sol.message, int(sol.njev), state["n"]
+    """Least squares on the whitened residual for one measurement: ``estimate_poses_batch``
+    with P = 1, started from what ``estimate_pose_model`` computed at x0 (rays, h(x0),
+    Jacobian, the estimated directions). jac="forward": forward differences until the
+    cost stalls, central ones to finish (the fixed point is the central-difference one)."""
+    start = _Start(uv=prob.uv0[None], z=prob.z0[None], Jw=prob.Jw0[None], central=jac == "central",
+                   basis=prob.basis, observable=prob.observable, null=prob.null)
+    b = estimate_poses_batch(prob.model, prob.z[None], prob.x0[None], max_iter=max_iter, xtol=tol, ftol=tol,
+                             fast_start=jac != "central", _start=start)
+    status = str(b.status[0])
+    ok = status in ("converged", "flat") and bool(np.isfinite(b.chi2[0]))
+    return b.poses[0], b.cov[0], ok, STOP_REASONS[status], int(b.n_iter[0]), b.n_evals
 
 
 def _merwe_weights(n: int, alpha: float, beta: float, kappa: float):
@@ -536,7 +601,8 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
     if weak:
         warnings.warn(f"pose DOF {', '.join(weak)}: predicted 1-sigma exceeds the bench's pose scale "
                       "(estimated, but barely measured)", WeakObservabilityWarning, stacklevel=3)
-    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], z0=base.z[0], Jw0=Jw0, basis=ob.basis, null=null, D=D)
+    prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], z0=base.z[0], Jw0=Jw0, basis=ob.basis, null=null, D=D,
+                    observable=ob.observable)
     x, cov, converged, message, iterations, n_evals = ESTIMATORS[method](prob, jac=jac, **options)
     n_evals += 1 + (12 if jac == "central" else 6)
     out = _in_range(bench, x)
@@ -559,9 +625,9 @@ def estimate_pose(bench: Bench, lens: Lens, z_measured: ArrayLike, x0: ArrayLike
     residuals, covariance (J^T R^-1 J)^-1) or "ukf" (the paper's baseline; see the
     module docstring for why ``ukf_repeats`` > 1 gives an overconfident covariance).
     x0: initial pose (default nominal). Options: jac ("central" or "forward": forward
-    differences while far from the minimum, half the traces per iteration),
-    on_rank_loss ("warn" or "raise"); lm: max_iter (50 iterations), tol (1e-8, relative
-    step and cost change); ukf: prior_cov (default from ``initial_poses``), ukf_repeats
+    differences while far from the minimum, half the traces per iteration; central ones
+    to finish), on_rank_loss ("warn" or "raise"); lm: max_iter (50 iterations), tol
+    (1e-8, relative step and cost change); ukf: prior_cov (default from ``initial_poses``), ukf_repeats
     (12, the paper's), ukf_alpha/beta/kappa (0.5, 2, 0), ukf_process_cov (zero: static
     state).
     Raises ConfigError (bad inputs), PoseRangeError (x0 outside the bench's range),
