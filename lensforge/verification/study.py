@@ -227,8 +227,9 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
         if cfg.calibration == "joint":
             from .joint_trial import joint_trial_record
 
-            rec["joint"] = joint_trial_record(ctx.bench, ctx.lens_parameterisation, z[lit], A_cmd[lit],
-                                              scene.T_SO_nominal, starts, scene.noise.cov, scene.Z, X_true)
+            param = ctx.lens_parameterisation  # its theta Jacobian is at the plan: the iteration's start
+            rec["joint"] = joint_trial_record(ctx.bench, param, z[lit], A_cmd[lit], scene.T_SO_nominal, starts,
+                                              scene.noise.cov, scene.Z, X_true, param.theta_jacobian[lit])
         return rec
 
     nominal_start = [(scene.X, scene.Z)]  # the robot program's grasp and sensor placement
