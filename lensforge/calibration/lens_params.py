@@ -54,7 +54,10 @@ MODE_NAMES = {2: "tilt x (wedge)", 3: "tilt y (wedge)", 4: "power", 5: "astigmat
 def _poly_sum(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Sum of two square monomial arrays of possibly different degree."""
     n = max(a.shape[0], b.shape[0])
-    return np.pad(a, (0, n - a.shape[0])) + np.pad(b, (0, n - b.shape[0]))
+    out = np.zeros((n, n))
+    out[:a.shape[0], :a.shape[1]] += a
+    out[:b.shape[0], :b.shape[1]] += b
+    return out
 
 
 def _mode_poly(j: int, radius: float) -> np.ndarray:
@@ -160,13 +163,18 @@ class LensParameterisation:
 
     V: (d, k) orthonormal directions in prior-scaled elementary space; singular_values:
     (all d) of the whitened prior-scaled Jacobian over the working range (how many
-    noise sigmas a 1-sigma deviation along each direction moves the data); kept: k.
+    noise sigmas a 1-sigma deviation along each direction moves the data); kept: k;
+    poses: (P, 6) the working range it was chosen on (or None); theta_jacobian: (P, m,
+    k) whitened dh/dtheta of the mean lens (theta = 0) at those poses (or None), a free
+    start for the joint calibration's iteration Jacobian at poses near them.
     """
 
     space: LensSpace
     V: np.ndarray
     singular_values: np.ndarray
     keep_threshold: float
+    poses: np.ndarray | None = None
+    theta_jacobian: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -228,4 +236,6 @@ def parameterise(bench, lens: Lens, tolerances, poses, keep_threshold: float = 0
     k = int(np.sum(s > keep_threshold))
     if max_directions is not None:
         k = min(k, int(max_directions))
-    return LensParameterisation(space=space, V=Vt[:k].T.copy(), singular_values=s, keep_threshold=keep_threshold)
+    V = Vt[:k].T.copy()
+    return LensParameterisation(space=space, V=V, singular_values=s, keep_threshold=keep_threshold,
+                                poses=np.atleast_2d(np.asarray(poses, dtype=float)).copy(), theta_jacobian=J @ V)

@@ -52,6 +52,9 @@ def study_cmd(
     tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
     lenses: int = typer.Option(1000, "--lenses", "-n", help="number of as-built lenses"),
     poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
+    pose_plan: Path = typer.Option(None, "--pose-plan", help="JSON {\"poses\": [[tx, ty, tz, rx, ry, rz], ...]} "
+                                   "(mm, rad, lens pose relative to nominal; e.g. a joint design) instead of "
+                                   "--poses random ones"),
     seed: int = typer.Option(0, "--seed", help="study seed (trial i uses SeedSequence(seed) child i)"),
     workers: int = typer.Option(None, "--workers", help="local Dask worker processes (0 = in this process; "
                                                         "default: all cores)"),
@@ -68,16 +71,19 @@ def study_cmd(
 ):
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
     from ..verification.statistics import format_counts
-    from ..verification.study import StudyConfig, verify
+    from ..verification.study import StudyConfig, load_plan, verify
     from ..verification.study_plots import plot_error_histograms
 
     tol = _tolerances(tolerances)
+    plan = load_plan(pose_plan) if pose_plan is not None else None
+    if plan is not None:
+        poses = len(plan)
     _check_sizes(seed, lenses, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = load_bench(bench) if bench else None
     check_output(out, folder=True, need_mb=5 + lenses * 2e-3)
     res = verify(design, tol, lenses, seed, b, config=cfg, workers=workers, scheduler=scheduler,
-                 store=out / "store.sqlite", resume=resume, progress=not (no_progress or json_out))
+                 store=out / "store.sqlite", resume=resume, progress=not (no_progress or json_out), plan=plan)
     d = res.to_dict()
     d["design"] = str(design)
     d["tolerances"] = res.config["tolerances"]

@@ -39,14 +39,16 @@ def nees(T_true, T_est, cov) -> float:
 
 
 def joint_trial_record(bench, param: LensParameterisation, z, A, T_SO_nominal, starts, robot_cov, Z_true,
-                       X_true) -> dict:
+                       X_true, theta_jacobian0=None) -> dict:
     """Run the joint calibration on one trial's data from the (X0, Z0) starts (the
     two-stage solution, then the robot program's nominal X, Z; see
     ``joint_calibrate_from``); a record like the trial's (ok,
     rot_err_deg, trans_err_mm, x_*), plus nees_Z (6 dof), chi2, dof, p_value,
-    mismatch, theta, n_identifiable, iterations, converged, Z 1-sigma."""
+    mismatch, theta, n_identifiable, iterations, converged, Z 1-sigma. theta_jacobian0:
+    dh/dtheta at the commanded poses (``LensParameterisation.theta_jacobian`` rows; speed only)."""
     try:
-        res = joint_calibrate_from(bench, param, z, A, T_SO_nominal, starts, robot_cov)
+        res = joint_calibrate_from(bench, param, z, A, T_SO_nominal, starts, robot_cov,
+                                   theta_jacobian0=theta_jacobian0)
     except (LensforgeError, np.linalg.LinAlgError) as e:
         return {"ok": False, "failure": f"joint calibration failed: {e}", "rot_err_deg": None, "trans_err_mm": None}
     rot, trans = transform_error(Z_true, res.Z)

@@ -227,8 +227,9 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
         if cfg.calibration == "joint":
             from .joint_trial import joint_trial_record
 
-            rec["joint"] = joint_trial_record(ctx.bench, ctx.lens_parameterisation, z[lit], A_cmd[lit],
-                                              scene.T_SO_nominal, starts, scene.noise.cov, scene.Z, X_true)
+            param = ctx.lens_parameterisation  # its theta Jacobian is at the plan: the iteration's start
+            rec["joint"] = joint_trial_record(ctx.bench, param, z[lit], A_cmd[lit], scene.T_SO_nominal, starts,
+                                              scene.noise.cov, scene.Z, X_true, param.theta_jacobian[lit])
         return rec
 
     nominal_start = [(scene.X, scene.Z)]  # the robot program's grasp and sensor placement
@@ -365,15 +366,46 @@ def calibration_plan(config: StudyConfig, plan_seed: int = 0) -> np.ndarray:
     return rng.uniform(-1.0, 1.0, (config.n_poses, 6)) * span
 
 
+def check_plan(plan, source: str = "pose plan") -> np.ndarray:
+    """A calibration plan (n, 6) of lens pose vectors (mm, rad, relative to nominal),
+    validated: n >= 3 rows of 6 finite numbers; raises ConfigError naming ``source``."""
+    try:
+        a = np.asarray(plan, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: poses must be rows of 6 numbers (tx ty tz mm, rx ry rz rad)") from None
+    if a.ndim != 2 or a.shape[1] != 6 or a.shape[0] < 3:
+        raise ConfigError(f"{source}: need at least 3 rows of 6 numbers (tx ty tz mm, rx ry rz rad), "
+                          f"got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ConfigError(f"{source}: poses must be finite numbers")
+    return a
+
+
+def load_plan(path) -> np.ndarray:
+    """A calibration plan from JSON: {"poses": [[tx, ty, tz, rx, ry, rz], ...]} or the bare
+    list (lens pose vectors relative to nominal, mm and rad; e.g. a joint design's x)."""
+    from ..fileio import read_json
+
+    d = read_json(path, "pose plan")
+    poses = d.get("poses") if isinstance(d, dict) else d
+    if poses is None:
+        raise ConfigError(f"{path}: no \"poses\" list (rows of tx ty tz mm, rx ry rz rad)")
+    return check_plan(poses, str(path))
+
+
 def make_context(lens: Lens, bench: Bench, tolerances, config: StudyConfig, plan_seed: int = 0,
-                 scene=None, grasp_sigma=None) -> StudyContext:
-    """Assemble the trial context (plan, paper scene at the bench's distance, grasp error model)."""
+                 scene=None, grasp_sigma=None, plan=None) -> StudyContext:
+    """Assemble the trial context (plan, paper scene at the bench's distance, grasp error
+    model); plan: (n_poses, 6) given calibration plan (default: ``calibration_plan``)."""
     scene = scene or paper_scene(bench.placement.distance_mm)
     if grasp_sigma is None:
         m = InitialPoseModel()
         grasp_sigma = np.array([m.grasp_translation_mm] * 3 + [m.grasp_rotation_rad] * 3)
+    plan = calibration_plan(config, plan_seed) if plan is None else check_plan(plan)
+    if len(plan) != config.n_poses:
+        raise ConfigError(f"pose plan: {len(plan)} poses but n_poses is {config.n_poses}")
     return StudyContext(lens=lens, bench=bench, tolerances=tolerances, config=config,
-                        plan=calibration_plan(config, plan_seed), scene=scene,
+                        plan=plan, scene=scene,
                         grasp_sigma=np.asarray(grasp_sigma, dtype=float))
 
 
@@ -436,7 +468,7 @@ def result_from_records(records: dict[int, dict], config: dict, chash: str, stor
 def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | None = None, n_poses: int = 24, *,
            workers: int | None = None, scheduler: str | None = None, store=None, resume: bool = False,
            progress: bool = True, calibration: str = "two-stage", config: StudyConfig | None = None,
-           plan_seed: int = 0, client=None, description: str = "as-built lenses") -> StudyResult:
+           plan_seed: int = 0, client=None, description: str = "as-built lenses", plan=None) -> StudyResult:
     """As-built Monte Carlo of the calibration for ``n_lenses`` as-built lenses.
 
     design_or_lens: Lens, Design, paper lens name or design JSON path; tolerances:
@@ -447,7 +479,9 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     all cores); scheduler: address of an existing Dask scheduler; store: SQLite file
     to append finished trials to (resume=True continues a killed study; the store
     refuses a different study); calibration: "two-stage" or "joint" (ignored when
-    ``config`` is given; see StudyConfig); description: the progress bar's label.
+    ``config`` is given; see StudyConfig); description: the progress bar's label;
+    plan: (n, 6) calibration plan (lens pose vectors, mm and rad, relative to nominal,
+    e.g. a joint design's; n_poses becomes n) instead of the seeded random box.
     Returns a :class:`StudyResult` (errors in deg and mm).
     A script that starts a local cluster (workers != 0) needs the usual
     ``if __name__ == "__main__":`` guard (worker processes are spawned).
@@ -459,7 +493,12 @@ def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | 
     tol = resolve_tolerances(tolerances)
     if config is None:
         config = StudyConfig(n_poses=int(n_poses), calibration=calibration)
-    ctx = make_context(lens, bench, tol, config, plan_seed)
+    if plan is not None:
+        from dataclasses import replace
+
+        plan = check_plan(plan)
+        config = replace(config, n_poses=len(plan), min_poses=min(config.min_poses, len(plan)))
+    ctx = make_context(lens, bench, tol, config, plan_seed, plan=plan)
     cfg = context_config(ctx, seed)
     chash = config_hash(cfg)
     with (TrialStore.session(store, chash, cfg, resume=resume, n_trials=int(n_lenses)) if store is not None

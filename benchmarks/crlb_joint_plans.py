@@ -1,0 +1,70 @@
+"""Joint Cramer-Rao bound of Z with the as-built lens free vs known, per pose plan.
+
+Predicts how much the as-built lens costs the joint calibration (issue 10's "Numbers
+to reach"): for random plans of 24, 48 and 96 poses (the study's seeded box) and
+Ds-optimal joint designs (``calibration.joint_design``) of 24 and 96 poses, the RMS
+Z 1-sigma with theta free (prior from the default tolerance file) and with theta
+known, and their ratio. A study of perfect lenses estimates with the lens known, so
+the ratio is what the default-tolerance / perfect-lens error ratio tends to.
+Writes the designed plans as --pose-plan files (``lensforge study --pose-plan``).
+
+Run: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 NUMBA_NUM_THREADS=1 \\
+     .venv/bin/python benchmarks/crlb_joint_plans.py exports/zernike.json [-o exports/plans]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from lensforge.calibration.joint_design import box_candidates, design_joint_poses, predicted_joint_uncertainty
+from lensforge.calibration.lens_params import parameterise
+from lensforge.calibration.robot import paper_scene
+from lensforge.manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
+from lensforge.optics.lens import resolve_lens
+from lensforge.verification.study import StudyConfig, calibration_plan
+
+
+def row_of(q: dict) -> dict:
+    row = {k: q[k] for k in ("Z_translation_mm", "Z_rotation_deg", "Z_translation_known_lens_mm",
+                             "Z_rotation_known_lens_deg")}
+    row["ratio_translation"] = row["Z_translation_mm"] / row["Z_translation_known_lens_mm"]
+    row["ratio_rotation"] = row["Z_rotation_deg"] / row["Z_rotation_known_lens_deg"]
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("design")
+    ap.add_argument("-o", "--out", type=Path, default=Path("exports/plans"))
+    a = ap.parse_args()
+    r = resolve_lens(a.design)
+    lens, bench = r.lens, r.bench_or()
+    scene = paper_scene(bench.placement.distance_mm)
+    param = parameterise(bench, lens, load_tolerances(DEFAULT_TOLERANCES_FILE),
+                         calibration_plan(StudyConfig(n_poses=24)))
+    print(f"theta: {param.k} directions")
+    cfg = StudyConfig()
+    span = np.r_[cfg.pose_span_mm, np.radians(cfg.pose_span_deg)]
+    cand = box_candidates(np.random.default_rng(0), span, 200)
+    a.out.mkdir(parents=True, exist_ok=True)
+    rows = {}
+    for n in (24, 48, 96):
+        rows[f"random {n}"] = row_of(predicted_joint_uncertainty(bench, param, scene,
+                                                                 calibration_plan(StudyConfig(n_poses=n))))
+    for n in (24, 96):
+        d = design_joint_poses(bench, param, scene, n, cand, check_reach=True, max_passes=2)
+        rows[f"designed {n}"] = row_of(d.chosen)
+        (a.out / f"joint_design_{n}.json").write_text(json.dumps({"poses": d.x.tolist()}))
+    print(f"{'plan':<12} {'Z 1s theta free':>22} {'Z 1s theta known':>22} {'ratio t / r':>12}")
+    for name, w in rows.items():
+        print(f"{name:<12} {w['Z_translation_mm']:9.4f} mm {w['Z_rotation_deg']:7.4f} deg "
+              f"{w['Z_translation_known_lens_mm']:9.4f} mm {w['Z_rotation_known_lens_deg']:7.4f} deg "
+              f"{w['ratio_translation']:5.2f} / {w['ratio_rotation']:4.2f}")
+
+
+if __name__ == "__main__":
+    main()
