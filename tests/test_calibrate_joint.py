@@ -39,13 +39,18 @@ def test_joint_is_registered_and_the_default():
     assert inspect.signature(calibrate).parameters["method"].default == "joint"
 
 
+def _calibrate_cli(monkeypatch, capsys, paths, out_dir, *options):
+    """lensforge calibrate --json on the session's files: (parsed stdout, stderr)."""
+    code, out, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", str(paths["wfs_zernike.csv"]),
+                                       "-r", str(paths["robot_poses.csv"]), *options, "--json", "--no-progress",
+                                       "-o", str(out_dir))
+    assert code == 0, err
+    return json.loads(out), err
+
+
 def test_cli_joint_recovers_as_built_z_where_two_stage_is_flagged(session, monkeypatch, capsys, tmp_path):
     s, paths = session
-    code, out, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", str(paths["wfs_zernike.csv"]),
-                            "-r", str(paths["robot_poses.csv"]), "--method", "joint", "--json", "--no-progress",
-                            "-o", str(tmp_path / "cal"))
-    assert code == 0, err
-    d = json.loads(out)
+    d, _ = _calibrate_cli(monkeypatch, capsys, paths, tmp_path / "cal", "--method", "joint")
     assert {"schema_version", "Z", "X", "chi2_dof", "poses_used", "poses_rejected", "method"} <= set(d)
     assert d["method"] == "joint" and d["tolerances"].endswith("tolerances-default.toml")
     assert set(d["Z"]) == {"matrix", "xyzabc", "quaternion_wxyz", "std", "cov"}
@@ -113,11 +118,7 @@ def test_no_tolerance_model_falls_back_to_two_stage(session, monkeypatch, capsys
     """calibrate -t none: the joint calibration has no lens prior; the two-stage result
     is returned with the fallback stated on the console and in the JSON."""
     _, paths = session
-    code, out, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", str(paths["wfs_zernike.csv"]),
-                                       "-r", str(paths["robot_poses.csv"]), "-t", "none", "--json", "--no-progress",
-                                       "-o", str(tmp_path / "cal"))
-    assert code == 0, err
-    d = json.loads(out)
+    d, err = _calibrate_cli(monkeypatch, capsys, paths, tmp_path / "cal", "-t", "none")
     assert d["method"] == "two-stage" and d["fallback"]["from"] == "joint"
     assert "no tolerance model" in d["fallback"]["reason"]
     assert "fell back to the two-stage pipeline" in err

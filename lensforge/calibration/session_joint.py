@@ -7,9 +7,11 @@ by ``session.joint``) and the robot program's nominal X, Z (the cell's). Running
 is needed because the chi2 test does not flag every wrong minimum: when the as-built
 lens fools the two-stage pipeline (seen on 3 of 20 default-tolerance sessions, e.g. Z 92 mm
 off), its start lights only 4 of 12 poses and the fit on those 4 passes the chi2 test
-(chi2/dof 1.45) with Z still 90 mm off. "Best" is the fit that explains the most
-poses, then the lowest cost: a fit that leaves poses unlit has discarded data
-another start explains, and costs on different pose sets are not comparable.
+(chi2/dof 1.45) with Z still 90 mm off. "Best" is, among the fits the chi2 test
+accepts, the one that explains the most poses, then the lowest cost: a fit that
+leaves poses unlit has discarded data another start explains, and costs on different
+pose sets are not comparable. A fit the test flags (e.g. a start that converges to a
+chi2/dof of 1e5 on all poses) is kept only if every fit is flagged.
 theta, the as-built lens parameters, is chosen from the tolerance model over the lens
 poses each start predicts (``lens_params.parameterise``); its prior is N(0, I) in
 units of the tolerances.
@@ -73,7 +75,9 @@ def _per_pose(bench, param, res, z, A, Tn, robot_cov):
 def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, robot_cov, *, alpha: float = OUTLIER_ALPHA,
                    params=None):
     """(result, parameterisation, start index) of the best joint fit over ``starts``
-    [(X0, Z0), ...] (module docstring: most poses used, then lowest cost). theta is
+    [(X0, Z0), ...] (module docstring): among the fits the chi2 test accepts, the one
+    using most poses, then the lowest cost; if the test flags every fit, the lowest
+    chi2/dof. theta is
     parameterised over the lens poses each start predicts unless ``params`` (one
     LensParameterisation per start) is given. CalibrationError if no start gives a fit."""
     best, error = None, None
@@ -88,7 +92,8 @@ def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, rob
         except CalibrationError as e:
             error = e
             continue
-        key = (-int(res.used.sum()), float(res.chi2))
+        # accepted fits first (most poses, then lowest cost); a flagged fit only when none is accepted
+        key = (0, -int(res.used.sum()), float(res.chi2)) if not res.mismatch else (1, float(res.chi2) / res.dof)
         if best is None or key < best[0]:
             best = (key, res, param, i)
     if best is None:
