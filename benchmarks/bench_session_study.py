@@ -67,6 +67,7 @@ def main() -> None:
     ap.add_argument("--sessions", type=int, default=200)
     ap.add_argument("--seed", type=int, default=1000)
     ap.add_argument("--poses", type=int, default=12)
+    ap.add_argument("--candidates", type=int, default=None, help="plan's n_candidates (default: plan's default)")
     ap.add_argument("--tolerances", default="default", help="'default', a TOML path or 'none' (perfect lenses)")
     ap.add_argument("--method", default="joint")
     ap.add_argument("--workers", type=int, default=2)
@@ -75,7 +76,8 @@ def main() -> None:
     a = ap.parse_args()
     lens, bench = load_design_lens(a.design)
     t0 = time.time()
-    p = plan(lens, bench=bench, n=a.poses, seed=a.seed)
+    p = plan(lens, bench=bench, n=a.poses, seed=a.seed,
+             **({} if a.candidates is None else {"n_candidates": a.candidates}))
     print(f"plan: {len(p.ids)} poses, {time.time() - t0:.0f} s; predicted Z 1-sigma (theta free) "
           f"{p.predicted['Z_translation_mm'] * 1e3:.1f} um RMS", flush=True)
     _JOB.update(lens=lens, bench=bench, plan=p, method=a.method,
