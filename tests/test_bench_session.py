@@ -29,9 +29,24 @@ def test_plan_poses_are_reachable_lit_and_predict_z(kr10_plan):
     assert len(p.ids) == 8 and p.joints.shape == (8, 6)
     lim = np.asarray(p.robot.limits_rad)
     assert np.all(p.joints >= lim[:, 0]) and np.all(p.joints <= lim[:, 1])
-    assert np.all(p.z_std > 0) and p.z_std[:3].max() < 0.2 and p.z_std[3:].max() < math.radians(0.1)
+    assert np.all(p.z_std > 0) and p.z_std[:3].max() < 0.5 and p.z_std[3:].max() < math.radians(0.2)
     files = p.files()
     assert {"plan_xyzabc.csv", "plan_4x4.json", "lf_calib.src", "lf_calib.dat", "plan.json"} <= set(files)
+
+
+def test_plan_is_the_joint_design_and_reports_both_bounds(kr10_plan):
+    """The plan is the joint calibration's design: Z's 1-sigma with the as-built lens
+    free can only exceed the known-lens one (a nuisance adds no information), and both
+    are in plan.json; the design beats random poses of the same box."""
+    p = kr10_plan
+    d = json.loads(p.files(("csv",))["plan.json"])
+    assert d["design"].startswith("joint") and d["n_lens_parameters"] >= 1
+    free = np.array(list(d["predicted_Z_std"].values()))
+    known = np.array(list(d["predicted_Z_std_known_lens"].values()))
+    assert np.all(free >= known * (1 - 1e-9)) and np.all(known > 0)
+    assert d["random_over_designed_Z_translation"] > 1.0
+    # the same numbers as Plan.z_std (one source)
+    assert np.allclose(free[:3], p.z_std[:3]) and np.allclose(np.radians(free[3:]), p.z_std[3:])
 
 
 def test_plan_for_a_second_robot_ur5e():
@@ -50,12 +65,16 @@ def test_sessions_recover_z_within_reported_3sigma_small():
 
 @pytest.mark.slow
 def test_sessions_recover_z_within_reported_3sigma_200():
-    """>= 99 % of 200 sessions inside the 3-sigma-equivalent ellipsoid, calibrated chi2."""
-    r = check_sessions(LENS, 200, seed=1000)
+    """Issue 11's end-to-end test: 200 sessions through as-built lenses of the DEFAULT
+    tolerances (joint calibration): >= 99 % inside the 3-sigma-equivalent ellipsoid,
+    calibrated chi2 (mean chi2/dof near 1, p-values not far from uniform). The same
+    study with figures: benchmarks/bench_session_study.py."""
+    r = check_sessions(LENS, 200, seed=1000, tolerances="default")
     assert len(r["failed"]) <= 2, r["failed"][:3]
     assert r["inside_3sigma"] >= 0.99
-    assert 0.85 < r["nees"].mean() / 6 < 1.15
+    assert 0.7 < r["nees"].mean() / 6 < 1.3
     assert abs(r["chi2_dof"].mean() - 1.0) < 0.1
+    assert np.mean(r["p_values"] < 0.01) < 0.05  # 1 % expected
     assert kstest(r["p_values"], "uniform").pvalue > 1e-3
 
 

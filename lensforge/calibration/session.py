@@ -4,7 +4,8 @@ calibrate X and Z from a WFS export and the recorded flange poses.
 Frames (DESIGN.md): A = ^W T_E (flange in the robot base), B = ^S T_O (lens in the
 sensor frame), X = ^E T_O (grasp), Z = ^W T_S (sensor in the robot base); mm, rad.
 
-``plan``: D-optimal choice (``pose_design.design_poses``) of lens poses in a working
+``plan``: the joint calibration's experiment design (``joint_design.design_joint_poses``:
+Ds-optimal for Z with the as-built lens parameters free) of lens poses in a working
 box about the nominal placement, among candidates whose pupil stays lit on the
 design's model (with a lateral margin) and whose flange pose the robot reaches
 (inverse kinematics within the joint limits); the flange poses follow from the
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,10 +45,12 @@ from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
 from . import formats
 from .handeye import solve_handeye
-from .pose_design import candidate_poses, design_poses
+from .joint_design import candidate_information, design_joint_poses
+from .lens_params import parameterise
+from .pose_design import candidate_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
-from .session_joint import joint_session
+from .session_joint import joint_session, resolve_tolerances
 from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict
 
 __all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
@@ -123,16 +126,25 @@ def lens_pose_crlb(bench: Bench, lens: Lens) -> np.ndarray:
 # ----------------------------------------------------------------------------- plan
 
 
+def _std_dict(d) -> dict:
+    """{tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg} of a (6,) 1-sigma (mm, rad)."""
+    return {"tx_mm": float(d[0]), "ty_mm": float(d[1]), "tz_mm": float(d[2]), "rx_deg": math.degrees(d[3]),
+            "ry_deg": math.degrees(d[4]), "rz_deg": math.degrees(d[5])}
+
+
 @dataclass(frozen=True, eq=False)
 class Plan:
     """Calibration poses for the robot.
 
     ids: pose ids ("1".."n"); x: (n, 6) lens poses relative to nominal (mm, rad); A:
     (n, 4, 4) flange poses ^W T_E (mm); joints: (n, 6) IK joint angles (rad);
-    predicted: pose_design's predicted (Cramer-Rao) uncertainty of the design (cov:
-    12x12, right perturbations of X then Z); z_std: (6,) predicted 1-sigma of Z
-    (mm, rad, {S} axes); random_ratio: random / designed RMS Z translation error;
-    robot: the RobotModel; scene: the nominal cell; lens/bench: the design's."""
+    predicted: the joint design's predicted (Cramer-Rao) uncertainty
+    (``joint_design._z_sigma`` keys; cov: (12 + k)^2, right perturbations of X, Z, then
+    theta); z_std: (6,) predicted 1-sigma of Z with the as-built lens theta free (mm,
+    rad, {S} axes); z_std_known_lens: the same were the lens known; random_ratio:
+    random / designed RMS Z translation error (theta free); tolerances: the tolerance
+    file of theta's prior; robot: the RobotModel; scene: the nominal cell; bench: the
+    design's."""
 
     ids: tuple
     x: np.ndarray
@@ -140,12 +152,14 @@ class Plan:
     joints: np.ndarray
     predicted: dict
     z_std: np.ndarray
+    z_std_known_lens: np.ndarray
     random_ratio: float
     robot: RobotModel
     scene: Scene
     bench: Bench
     work_translation_mm: float
     work_rotation_rad: float
+    tolerances: str = "default"
 
     def files(self, formats_: tuple = ("csv", "json", "krl")) -> dict:
         """{file name: text} for the plan writers (formats.PLAN_WRITERS)."""
@@ -165,13 +179,17 @@ class Plan:
             "kind": "calibration_plan",
             "robot": self.robot.name,
             "n_poses": len(self.ids),
+            "design": "joint Ds-optimal for Z (as-built lens theta free, prior from the tolerances)",
+            "tolerances": self.tolerances,
+            "n_lens_parameters": len(self.predicted["theta_sigma"]),
             "work_box": {"translation_mm": self.work_translation_mm,
                          "rotation_deg": math.degrees(self.work_rotation_rad)},
-            "predicted_Z_std": {"tx_mm": float(self.z_std[0]), "ty_mm": float(self.z_std[1]),
-                                "tz_mm": float(self.z_std[2]), "rx_deg": math.degrees(self.z_std[3]),
-                                "ry_deg": math.degrees(self.z_std[4]), "rz_deg": math.degrees(self.z_std[5])},
+            "predicted_Z_std": _std_dict(self.z_std),
+            "predicted_Z_std_known_lens": _std_dict(self.z_std_known_lens),
             "predicted_Z_translation_rms_mm": float(self.predicted["Z_translation_mm"]),
-            "predicted_Z_rotation_rms_deg": math.degrees(self.predicted["Z_rotation_rad"]),
+            "predicted_Z_rotation_rms_deg": float(self.predicted["Z_rotation_deg"]),
+            "predicted_Z_translation_rms_known_lens_mm": float(self.predicted["Z_translation_known_lens_mm"]),
+            "predicted_Z_rotation_rms_known_lens_deg": float(self.predicted["Z_rotation_known_lens_deg"]),
             "random_over_designed_Z_translation": float(self.random_ratio),
             "poses": [{"pose": i, "lens_pose": {"tx_mm": p[0], "ty_mm": p[1], "tz_mm": p[2], "rx_rad": p[3],
                                                  "ry_rad": p[4], "rz_rad": p[5]},
@@ -181,52 +199,64 @@ class Plan:
 
 
 def plan(design, *, bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12, seed: int = 0,
-         work_translation_mm: float = 0.5, work_rotation_rad: float = math.radians(5.0), lit_margin_mm: float = 0.3,
-         n_candidates: int = 600) -> Plan:
-    """D-optimal calibration poses for the robot (see the module docstring).
+         tolerances="default", work_translation_mm: float = 0.5, work_rotation_rad: float = math.radians(5.0),
+         lit_margin_mm: float = 0.3, n_candidates: int = 100, n_random_sets: int = 5) -> Plan:
+    """Calibration poses for the joint calibration (see the module docstring).
 
     design: design file / paper lens name / Lens; robot: RobotModel, registry name or
-    TOML path (default KR 10); n: poses; work_*: the box about nominal the poses are
-    drawn from (ASSUMPTION +-0.5 mm, +-5 deg, as verification/scenario.py);
-    lit_margin_mm: lateral margin a pose must keep lit. Every pose is reach-checked by
-    inverse kinematics and pupil-lit on the design's model.
+    TOML path (default KR 10); n: poses; tolerances: the tolerance model of the
+    as-built lens prior (as ``calibrate``'s: "default", a TOML path or Tolerances;
+    None or "none": the lens as designed, the design of the known-lens problem);
+    work_*: the box about nominal the poses are drawn from (ASSUMPTION +-0.5 mm,
+    +-5 deg, as verification/scenario.py); lit_margin_mm: lateral margin a pose must
+    keep lit; n_random_sets: random n-pose plans of the lit candidates the design is
+    compared with (median). The choice is ``joint_design.design_joint_poses`` (Ds-optimal
+    for Z with X, the robot errors and the lens parameters theta as nuisances; theta
+    from ``lens_params.parameterise`` over the lit candidates). Every pose is
+    reach-checked by inverse kinematics and pupil-lit on the design's model.
     """
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     if int(n) != n or n < 3:
         raise ConfigError(f"n: need an integer >= 3 poses, got {n!r}")
+    lens_known = no_tolerance_model(tolerances)  # no prior: the lens as designed, theta has no direction
+    tol, tol_label = resolve_tolerances("default" if lens_known else tolerances)
     scene = robot_scene(robot, bench.placement.distance_mm)
     model = ForwardModel(bench, lens)
-    cov_B = lens_pose_crlb(bench, lens)
+    lens_pose_crlb(bench, lens)  # a lens whose pose is not observable cannot calibrate: say so first
     rng = np.random.default_rng(seed)
     cand = candidate_poses(rng, n_candidates, work_translation_mm, work_rotation_rad)
     cand = cand[lit_mask(model, cand, lit_margin_mm)]
-    unreachable = np.zeros(len(cand), bool)
-    for _ in range(10):
-        ok = cand[~unreachable]
-        if len(ok) < n:
-            break
-        res = design_poses(scene, cov_B, n, rng, candidates=ok, n_random_sets=20, check_reach=False)
-        joints, bad, q = [], [], None
-        for i, A in enumerate(res.A):
-            try:
-                q = inverse_kinematics(A, robot, q0=q)
-                joints.append(q)
-            except PoseRangeError:
-                bad.append(i)
-        if not bad:
-            ids = tuple(str(i + 1) for i in range(n))
-            return Plan(ids=ids, x=res.x, A=res.A, joints=np.array(joints), predicted=res.chosen,
-                        z_std=np.sqrt(np.diag(res.chosen["cov"])[6:]), random_ratio=res.ratio_Z_translation,
-                        robot=robot, scene=scene, bench=bench, work_translation_mm=work_translation_mm,
-                        work_rotation_rad=work_rotation_rad)
-        idx_ok = np.flatnonzero(~unreachable)
-        for i in bad:  # design_poses returns candidate rows: mark them
-            hit = np.flatnonzero(np.all(ok == res.x[i], axis=1))
-            unreachable[idx_ok[hit]] = True
-    raise PoseRangeError(f"plan: fewer than {n} lit candidate poses the {robot.name} can reach in the working box "
-                         f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); check the robot "
-                         "file's [cell] (sensor and grasp) or shrink the box")
+    if len(cand) < n:
+        raise PoseRangeError(f"plan: only {len(cand)} candidate poses light the pupil in the working box "
+                             f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); shrink the box")
+    # theta's directions over a sample of the working range (the joint fit re-derives them over its own poses)
+    sub = cand[rng.choice(len(cand), min(len(cand), 32), replace=False)]
+    param = parameterise(bench, lens, tol, sub, max_directions=0 if lens_known else None)
+    try:
+        res = design_joint_poses(bench, param, scene, n, cand, robot_cov=robot.noise.cov, check_reach=True)
+    except ConfigError as e:
+        raise PoseRangeError(f"plan: no {n} lit candidate poses the {robot.name} can reach in the working box "
+                             f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); check the "
+                             f"robot file's [cell] (sensor and grasp) or shrink the box ({e})") from None
+    joints, q = [], None
+    for A in res.A:
+        q = inverse_kinematics(A, robot, q0=q)
+        joints.append(q)
+    # random plans of the same size from the same lit candidates, traced in one batch: RMS Z translation 1-sigma
+    xr = np.concatenate([cand[rng.choice(len(cand), n, replace=False)] for _ in range(n_random_sets)])
+    Ir = candidate_information(bench, param, scene, xr, robot.noise.cov)[0].reshape(n_random_sets, n, 12 + param.k,
+                                                                                    12 + param.k)
+    F = Ir.sum(axis=1)
+    F[:, 12:, 12:] += np.eye(param.k)  # theta's N(0, I) prior
+    rand = [float(np.sqrt(np.trace(np.linalg.pinv(f, hermitian=True)[6:9, 6:9]))) for f in F]
+    cov = res.chosen["cov"]
+    cov_known = np.linalg.inv(np.linalg.inv(cov)[:12, :12])
+    return Plan(ids=tuple(str(i + 1) for i in range(n)), x=res.x, A=res.A, joints=np.array(joints),
+                predicted=res.chosen, z_std=np.sqrt(np.diag(cov)[6:12]), z_std_known_lens=np.sqrt(np.diag(cov_known)[6:12]),
+                random_ratio=float(np.median(rand)) / res.chosen["Z_translation_mm"], robot=robot, scene=scene,
+                bench=bench, work_translation_mm=work_translation_mm, work_rotation_rad=work_rotation_rad,
+                tolerances="none" if lens_known else tol_label)
 
 
 # ----------------------------------------------------------------------------- estimate
@@ -423,10 +453,32 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
                              warnings=tuple(warns), outlier_threshold=thr)
 
 
-def joint(data: SessionData, **kw) -> CalibrationResult:
+def no_tolerance_model(tolerances) -> bool:
+    """True for tolerances None or "none" (any case): no as-built lens prior."""
+    return tolerances is None or (isinstance(tolerances, str) and tolerances.strip().lower() == "none")
+
+
+def _fallback(data: SessionData, reason: str, **kw) -> CalibrationResult:
+    r = two_stage(data, **kw)
+    w = (f"the joint as-built calibration could not run ({reason}); fell back to the two-stage pipeline, "
+         "which assumes the lens as designed",)
+    return replace(r, warnings=w + tuple(r.warnings),
+                               extra={**r.extra, "fallback": {"from": "joint", "reason": reason}})
+
+
+def joint(data: SessionData, *, tolerances="default", **kw) -> CalibrationResult:
     """Joint as-built calibration of a matched session (``session_joint.joint_session``)
-    started from the two-stage solution."""
-    return joint_session(data, start=two_stage, **kw)
+    started from the two-stage solution and from the cell's nominal X, Z. Falls back to
+    ``two_stage`` (method "two-stage", a warning, and ``extra["fallback"]`` = {"from":
+    "joint", "reason"}) when it cannot run: no tolerance model (tolerances None or
+    "none") or the joint fit fails (CalibrationError, e.g. no start lights 3 poses).
+    A tolerance file that cannot be read stays an error (the user's mistake)."""
+    if no_tolerance_model(tolerances):
+        return _fallback(data, "no tolerance model for the as-built lens prior (tolerances: none)", **kw)
+    try:
+        return joint_session(data, start=two_stage, tolerances=tolerances, **kw)
+    except CalibrationError as e:
+        return _fallback(data, f"the joint fit failed: {e}", **kw)
 
 
 CALIBRATION_METHODS["joint"] = joint

@@ -40,7 +40,8 @@ from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
 
-__all__ = ["SimulatedSession", "simulate_session", "check_sessions", "NEES_3SIGMA_6DOF"]
+__all__ = ["SimulatedSession", "simulate_session", "check_sessions", "session_outcome", "summarise_sessions",
+           "NEES_3SIGMA_6DOF"]
 
 # ASSUMPTION (as verification/scenario.py): 1-sigma CAD error of the sensor placement Z
 SENSOR_CAD_TRANSLATION_MM = 0.2
@@ -126,11 +127,54 @@ def simulate_session(design, *, tolerances: Tolerances | str | Path | None = "de
 NEES_3SIGMA_6DOF = float(chi2_dist.ppf(math.erf(3 / math.sqrt(2)), 6))
 
 
+def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=None, method: str = "joint",
+                    calibration_tolerances="default", folder: Path | None = None) -> dict:
+    """Simulate the session of ``seed`` on ``session_plan``, calibrate it through the
+    files a real session writes (in ``folder``, default a temporary one) and score Z.
+
+    Returns {"seed", "failed": None or the error, "nees": e^T cov_Z^-1 e (right
+    perturbation, 6 DOF), "inside_3sigma_each_axis": all six parent-frame components
+    within 3 reported sigma, "chi2_dof", "p_value", "z_translation_error_mm",
+    "z_rotation_error_deg", "start": the joint fit's start (or None)}."""
+    s = simulate_session(lens, tolerances=tolerances, seed=seed, bench=bench, session_plan=session_plan)
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = write_bundle(Path(folder or tmp) / f"s{seed}", s.files())
+        try:
+            r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench,
+                          robot=session_plan.robot, method=method, tolerances=calibration_tolerances)
+        except LensforgeError as e:
+            return {"seed": int(seed), "failed": f"seed {seed}: {e}"}
+    e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
+    std = frame_dict(r.Z, r.handeye.cov_Z)["std"]
+    sig = np.array([std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
+                   [math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
+    err_parent = np.concatenate([r.Z[:3, 3] - s.Z[:3, 3], rotvecs(r.Z[:3, :3] @ s.Z[:3, :3].T)])
+    return {"seed": int(seed), "failed": None, "nees": float(e @ np.linalg.solve(r.handeye.cov_Z, e)),
+            "inside_3sigma_each_axis": bool(np.all(np.abs(err_parent) <= 3 * sig)), "chi2_dof": float(r.chi2_dof),
+            "p_value": float(r.p_value), "z_translation_error_mm": float(np.linalg.norm(e[:3])),
+            "z_rotation_error_deg": math.degrees(float(np.linalg.norm(e[3:]))), "start": r.extra.get("start")}
+
+
+def summarise_sessions(outcomes) -> dict:
+    """check_sessions' dict from a list of session_outcome dicts."""
+    ok = [o for o in outcomes if o["failed"] is None]
+    nees = np.array([o["nees"] for o in ok])
+    each = [o["inside_3sigma_each_axis"] for o in ok]
+    return {"nees": nees, "inside_3sigma": float(np.mean(nees <= NEES_3SIGMA_6DOF)) if len(nees) else float("nan"),
+            "inside_3sigma_each_axis": float(np.mean(each)) if each else float("nan"),
+            "chi2_dof": np.array([o["chi2_dof"] for o in ok]), "p_values": np.array([o["p_value"] for o in ok]),
+            "z_translation_error_mm": np.array([o["z_translation_error_mm"] for o in ok]),
+            "z_rotation_error_deg": np.array([o["z_rotation_error_deg"] for o in ok]),
+            "seeds": np.array([o["seed"] for o in ok], dtype=int),
+            "failed": [o["failed"] for o in outcomes if o["failed"] is not None]}
+
+
 def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
                    robot: RobotModel | str | None = None, n: int = 12, method: str = "joint",
-                   calibration_tolerances="default", progress=None) -> dict:
+                   calibration_tolerances="default", progress=None, plan_seed: int | None = None) -> dict:
     """Simulate ``n_sessions`` seeded sessions (seeds seed .. seed + n_sessions - 1, one
-    shared plan), calibrate each through the files a real session writes, and score Z.
+    shared plan of seed ``plan_seed``, default ``seed``), calibrate each through the
+    files a real session writes, and score Z (``session_outcome``).
     method: the calibrate method ("joint", the default, or "two-stage");
     calibration_tolerances: the joint method's prior (as calibrate's ``tolerances``).
 
@@ -138,36 +182,15 @@ def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, b
     fraction with NEES <= NEES_3SIGMA_6DOF (the 3-sigma-equivalent ellipsoid), "inside_3sigma_each_axis":
     fraction with all six parent-frame components within 3 reported sigma, "chi2_dof": (k,),
     "p_values": (k,) of the chi2 model check, "z_translation_error_mm", "z_rotation_error_deg",
-    "failed": sessions that raised}."""
+    "seeds": (k,) of the scored sessions, "failed": sessions that raised}."""
 
     lens, bench = load_design_lens(design, bench)
-    p = plan(lens, bench=bench, robot=robot, n=n, seed=seed)
-    nees, chi2_dof, pv, et, er, each, failed = [], [], [], [], [], [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        for k in range(n_sessions):
-            s = simulate_session(lens, tolerances=tolerances, seed=seed + k, bench=bench, session_plan=p)
-            paths = write_bundle(Path(tmp) / f"s{k}", s.files())
-            try:
-                r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench, robot=p.robot,
-                              method=method, tolerances=calibration_tolerances)
-            except LensforgeError as e:
-                failed.append(f"seed {seed + k}: {e}")
-                continue
-            e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
-            nees.append(float(e @ np.linalg.solve(r.handeye.cov_Z, e)))
-            chi2_dof.append(r.chi2_dof)
-            pv.append(r.p_value)
-            et.append(float(np.linalg.norm(e[:3])))
-            er.append(math.degrees(float(np.linalg.norm(e[3:]))))
-            std = frame_dict(r.Z, r.handeye.cov_Z)["std"]
-            sig = np.array([std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
-                           [math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
-            err_parent = np.concatenate([r.Z[:3, 3] - s.Z[:3, 3], rotvecs(r.Z[:3, :3] @ s.Z[:3, :3].T)])
-            each.append(bool(np.all(np.abs(err_parent) <= 3 * sig)))
-            if progress is not None:
-                progress(k + 1, n_sessions)
-    nees = np.array(nees)
-    return {"nees": nees, "inside_3sigma": float(np.mean(nees <= NEES_3SIGMA_6DOF)) if len(nees) else float("nan"),
-            "inside_3sigma_each_axis": float(np.mean(each)) if each else float("nan"),
-            "chi2_dof": np.array(chi2_dof), "p_values": np.array(pv),
-            "z_translation_error_mm": np.array(et), "z_rotation_error_deg": np.array(er), "failed": failed}
+    p = plan(lens, bench=bench, robot=robot, n=n, seed=seed if plan_seed is None else plan_seed,
+             tolerances=calibration_tolerances)
+    outcomes = []
+    for k in range(n_sessions):
+        outcomes.append(session_outcome(lens, bench, p, seed + k, tolerances=tolerances, method=method,
+                                        calibration_tolerances=calibration_tolerances))
+        if progress is not None:
+            progress(k + 1, n_sessions)
+    return summarise_sessions(outcomes)
