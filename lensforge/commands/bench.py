@@ -53,7 +53,7 @@ def plan_cmd(
                                  help="comma list of calibration.formats.PLAN_WRITERS names; auto = csv,json (+krl for a KUKA)"),
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-):
+) -> None:
     """Plan the calibration poses the robot should visit (D-optimal; reach-checked, pupil-lit).
 
     Writes plan_xyzabc.csv (pose,X,Y,Z,A,B,C: mm, deg, KUKA R = Rz(A) Ry(B) Rx(C)),
@@ -96,7 +96,7 @@ def calibrate_cmd(
     out: Path = typer.Option(Path("exports/calibration"), "-o", "--out", help="output folder"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
-):
+) -> None:
     """Calibrate X (lens in the flange) and Z (sensor in the robot base) from a bench session.
 
     Writes calibration.json, easy_handeye.yaml (ROS), summary.txt and residuals.png."""
@@ -119,7 +119,7 @@ def estimate_cmd(
     pose: Optional[str] = typer.Option(None, "--pose", help="pose id to use when the file holds several"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
-):
+) -> None:
     """Estimate one lens pose (relative to its nominal placement) with its covariance."""
     from ..calibration.session import estimate
     from ..optics.pose import DOF_NAMES
@@ -149,7 +149,7 @@ def simulate_session_cmd(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-):
+) -> None:
     """Write the files of a simulated bench session (robot_poses.csv, wfs_zernike.csv, truth.json)."""
     from ..calibration.formats import write_bundle
     from ..calibration.session import frame_dict

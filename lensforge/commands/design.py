@@ -54,7 +54,7 @@ def design(
     out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-):
+) -> None:
     """Optimise a freeform lens and write its design file."""
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
@@ -100,7 +100,7 @@ def plot(
     design_file: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
     out: Path = typer.Option(Path("exports"), "-o", "--out", help="folder for the PNGs"),
     json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
-):
+) -> None:
     """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
     from ..design.design_file import load_design
     from ..optics.lens import resolve_lens
@@ -124,7 +124,7 @@ def compare(
     range_mm: float = typer.Option(1.0, "--range-mm", help="working range for the feasibility column (mm)"),
     range_deg: float = typer.Option(1.0, "--range-deg", help="working range for the feasibility column (deg)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
-):
+) -> None:
     """Table-1 analogue: all lenses evaluated on one bench."""
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints

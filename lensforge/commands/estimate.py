@@ -25,7 +25,7 @@ def estimate_study(
     out: Path = typer.Option(Path("exports/estimate"), "-o", "--out", help="output folder (JSON, per-trial CSV, box plot PNG)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
+) -> None:
     """Estimate each lens's pose from noisy measurements TRIALS times; report error
     statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
     from ..calibration.pose_estimation import ESTIMATORS
@@ -70,7 +70,7 @@ def scenario(
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
+) -> None:
     """The paper's calibration procedure in simulation: 12 convergence poses, 12
     calibration poses, lens poses estimated from noisy measurements, hand-eye
     solved with the estimator covariances; Z error vs its predicted bound."""

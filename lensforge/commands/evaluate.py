@@ -63,7 +63,7 @@ def evaluate(
     lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
-):
+) -> None:
     """Rank, condition number, sigma_min, cost J and Cramer-Rao bound of each lens."""
     rows = evaluate_lenses(lenses, bench)
     if json_out:

@@ -79,7 +79,7 @@ def export_cmd(
     slicer: bool = typer.Option(True, "--slicer/--no-slicer", help="Check the STL with PrusaSlicer if present."),
     no_progress: bool = typer.Option(False, "--no-progress", help="No progress bar."),
     json_out: bool = typer.Option(False, "--json", help="Machine-readable report on stdout."),
-):
+) -> None:
     """Export a lens as printable files and report whether the Form 2 can print it."""
     if not math.isfinite(layer) or layer <= 0:
         raise ConfigError(f"--layer: must be a positive number of um, got {layer}")

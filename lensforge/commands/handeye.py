@@ -151,7 +151,7 @@ def handeye_cmd(
     obs_limit_rad: float = typer.Option(0.01, "--obs-limit-rad",
                                         help="the same for rotations (rad)"),
     plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
-):
+) -> None:
     """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
     # imported here so that `lensforge --help` stays fast (no scipy at CLI import)
     from ..calibration.formats import easy_handeye_yaml, write_bundle

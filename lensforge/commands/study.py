@@ -65,7 +65,7 @@ def study_cmd(
     out: Path = typer.Option(Path("exports/study"), "--out", "-o", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="summary on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
+) -> None:
     """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
     from ..verification.statistics import format_counts
     from ..verification.study import StudyConfig, verify
@@ -138,7 +138,7 @@ def budget_cmd(
                                     help="two-stage, or joint (see `lensforge study`; about 10x the CPU per lens)"),
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
+) -> None:
     """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
     from ..verification.budget import sensitivity_analysis, tolerance_budget
     from ..verification.runner import dask_client
