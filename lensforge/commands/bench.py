@@ -54,7 +54,9 @@ def plan_cmd(
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ) -> None:
-    """Plan the calibration poses the robot should visit (D-optimal; reach-checked, pupil-lit).
+    """Plan the robot's calibration poses.
+
+    D-optimal poses, reach-checked by inverse kinematics and pupil-lit on the design.
 
     Writes plan_xyzabc.csv (pose,X,Y,Z,A,B,C: mm, deg, KUKA R = Rz(A) Ry(B) Rx(C)),
     plan_4x4.json, for a KUKA lf_calib.src/.dat (KRL E6POS points; $BASE = robot root,
@@ -97,7 +99,9 @@ def calibrate_cmd(
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
 ) -> None:
-    """Calibrate X (lens in the flange) and Z (sensor in the robot base) from a bench session.
+    """Calibrate X and Z from a recorded bench session.
+
+    X = lens in the flange, Z = sensor in the robot base (mm, deg, 1-sigma).
 
     Writes calibration.json, easy_handeye.yaml (ROS), summary.txt and residuals.png."""
     with _progress(not (no_progress or json_out), "estimating lens poses") as cb:
@@ -120,7 +124,9 @@ def estimate_cmd(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
 ) -> None:
-    """Estimate one lens pose (relative to its nominal placement) with its covariance."""
+    """Estimate one lens pose with its covariance.
+
+    The pose is relative to the lens's nominal placement: translation (um), rotation (mrad)."""
     from ..calibration.session import estimate
     from ..optics.pose import DOF_NAMES
 
@@ -150,7 +156,9 @@ def simulate_session_cmd(
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ) -> None:
-    """Write the files of a simulated bench session (robot_poses.csv, wfs_zernike.csv, truth.json)."""
+    """Simulate a bench session's files to rehearse calibrate.
+
+    Writes robot_poses.csv, wfs_zernike.csv and truth.json."""
     from ..calibration.formats import write_bundle
     from ..calibration.session import frame_dict
 

@@ -101,7 +101,11 @@ def plot(
     out: Path = typer.Option(Path("exports"), "-o", "--out", help="folder for the PNGs"),
     json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
 ) -> None:
-    """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
+    """Plot a design (PNGs).
+
+    Singular values, sag maps with the lit area, Zernike response per DOF, beam
+    footprint over the working range, lenslet slope field, dimensioned cross-section
+    and the optimiser's convergence history."""
     from ..design.design_file import load_design
     from ..optics.lens import resolve_lens
     from ..plots import design_plots
@@ -125,7 +129,9 @@ def compare(
     range_deg: float = typer.Option(1.0, "--range-deg", help="working range for the feasibility column (deg)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
 ) -> None:
-    """Table-1 analogue: all lenses evaluated on one bench."""
+    """Compare lenses on one bench (Table-1 analogue).
+
+    Metrics, CRLB (um, urad), sensor range and feasibility (explained in words) per lens."""
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
 

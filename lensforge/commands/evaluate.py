@@ -64,7 +64,10 @@ def evaluate(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
 ) -> None:
-    """Rank, condition number, sigma_min, cost J and Cramer-Rao bound of each lens."""
+    """Design metrics and Cramer-Rao bound of each lens.
+
+    Rank, condition number kappa, sigma_min and cost J of the scaled, noise-whitened
+    sensitivity matrix, and the 1-sigma Cramer-Rao bound per pose DOF (um, urad)."""
     rows = evaluate_lenses(lenses, bench)
     if json_out:
         emit_json({"schema_version": 1, "lenses": rows})
