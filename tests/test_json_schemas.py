@@ -14,7 +14,7 @@ from conftest import run_cli_inprocess
 jsonschema = pytest.importorskip("jsonschema")
 
 from lensforge.cli import _COMMANDS  # noqa: E402
-from lensforge.schemas import COMMANDS, load_schema, render_markdown  # noqa: E402
+from lensforge.schemas import COMMANDS, load_schema, render_markdown, resolve_ref  # noqa: E402
 
 LENS = "extended_polynomial"  # paper lens with every DOF observable (the bench commands need one)
 
@@ -36,21 +36,11 @@ def test_docs_are_rendered_from_the_schemas():
     assert doc.read_text() == render_markdown(), "docs/json.md is stale: regenerate with lensforge.schemas.render_markdown()"
 
 
-def _resolve(s, root):
-    ref = s.get("$ref")
-    if not ref:
-        return s
-    target = root
-    for part in ref.removeprefix("#/").split("/"):
-        target = target[part]
-    return target
-
-
 def undocumented(data, schema, root=None, path=""):
     """Keys in ``data`` that its schema does not name (objects with named properties only;
     maps such as ``files`` or ``crlb_std`` are described as a whole)."""
     root = schema if root is None else root
-    schema = _resolve(schema, root)
+    schema = resolve_ref(schema, root)
     out = []
     if isinstance(data, dict):
         props = schema.get("properties") or {}

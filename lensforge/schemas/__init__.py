@@ -12,7 +12,7 @@ import json
 from importlib import resources
 from typing import Any
 
-__all__ = ["COMMANDS", "load_schema", "render_markdown"]
+__all__ = ["COMMANDS", "load_schema", "render_markdown", "resolve_ref"]
 
 COMMANDS = ("evaluate", "design", "plot", "compare", "export", "estimate", "estimate-study", "scenario", "handeye",
             "plan", "calibrate", "simulate-session", "study", "budget")
@@ -30,7 +30,7 @@ def _type(p: dict) -> str:
     return " or ".join(t) if isinstance(t, list) else str(t)
 
 
-def _resolve(p: dict, root: dict) -> dict:
+def resolve_ref(p: dict, root: dict) -> dict:
     """p with a local ``$ref`` (``#/$defs/NAME``) merged in; p's own keys (description) win."""
     ref = p.get("$ref")
     if not ref:
@@ -45,7 +45,7 @@ def _rows(props: dict, required: list, root: dict, prefix: str = "") -> list[str
     out = []
     for k, p in props.items():
         name = f"{prefix}{k}"
-        p = _resolve(p, root)
+        p = resolve_ref(p, root)
         out.append(f"| `{name}` | {_type(p)} | {'yes' if k in required else 'no'} | {p.get('description', '')} |")
         if p.get("type") == "object" and p.get("properties"):
             out += _rows(p["properties"], p.get("required", []), root, name + ".")
