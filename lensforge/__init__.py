@@ -26,6 +26,7 @@ _EXPORTS = {
     "save_bench": "lensforge.optics.bench",
     "Lens": "lensforge.optics.lens",
     "resolve_lens": "lensforge.optics.lens",
+    "LensSpec": "lensforge.optics.lens",
     "paper_lens": "lensforge.optics.lens",
     "PAPER_LENSES": "lensforge.optics.lens",
     "load_lens": "lensforge.optics.lens",
@@ -93,6 +94,8 @@ _EXPORTS = {
     # verification (simulation of the calibration)
     "verify": "lensforge.verification.study",
     "simulate_session": "lensforge.verification.session_sim",
+    "tolerance_budget": "lensforge.verification.budget",
+    "sensitivity_analysis": "lensforge.verification.budget",
     # plots
     "design_plots": "lensforge.plots",
     # errors
@@ -103,8 +106,11 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
+    from .calibration.formats import read_robot_poses, read_wfs
     from .calibration.handeye import HandEyeResult, solve_handeye
     from .calibration.pose_estimation import estimate_pose, estimate_poses_batch
+    from .calibration.robot import load_robot
+    from .calibration.session import calibrate, estimate, plan
     from .design.design_file import Design, load_design, save_design
     from .design.optimize import optimize_design
     from .errors import ConfigError, LensforgeError
@@ -116,7 +122,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from .manufacturing.step import export_step
     from .manufacturing.tolerances import Tolerances, load_tolerances, sample_as_built
     from .optics.bench import Bench, load_bench, save_bench
-    from .optics.lens import PAPER_LENSES, Lens, lens_conventions, load_lens, paper_lens, resolve_lens
+    from .optics.lens import PAPER_LENSES, Lens, LensSpec, lens_conventions, load_lens, paper_lens, resolve_lens
     from .optics.materials import load_material
     from .optics.pose import DOF_NAMES, invert_poses, matrix_to_pose, pose_to_matrix, transform_error
     from .optics.sensitivity import Metrics, jacobian, metrics, observability, sensitivity
@@ -127,6 +133,8 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
                                  noll_to_thorlabs, osa_to_noll, thorlabs_to_noll, to_osa_vector,
                                  to_thorlabs_vector)
     from .plots import design_plots
+    from .verification.budget import sensitivity_analysis, tolerance_budget
+    from .verification.session_sim import simulate_session
     from .verification.study import verify
 
 

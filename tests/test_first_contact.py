@@ -2,8 +2,10 @@
 
 import io
 import json
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numba as nb
 import numpy as np
@@ -180,3 +182,65 @@ def test_long_commands_have_no_progress_and_flags_show_no_bool_metavar(command):
     r = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
     assert r.exit_code == 0
     assert "--no-progress" in r.output and "<bool>" not in r.output
+
+
+# ----------------------------------------------------------------------------- README commands
+
+_README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _readme_blocks(lang):
+    text = _README.read_text()
+    return re.findall(rf"```{lang}\n(.*?)```", text, flags=re.S)
+
+
+def _readme_commands():
+    """Every `lensforge ...` command of the README: code-block lines and inline `lensforge ...` spans
+    (the command table's synopses, with [optional] parts and | alternatives, are not commands)."""
+    cmds = []
+    for block in _readme_blocks("bash"):
+        for line in block.splitlines():
+            line = line.split("#", 1)[0].strip()
+            if line.startswith("lensforge "):
+                cmds.append(line)
+    for line in _README.read_text().splitlines():
+        if line.startswith("|"):
+            continue
+        cmds += [c for c in re.findall(r"`(lensforge [^`]+)`", line) if "[" not in c and "|" not in c and "..." not in c]
+    return cmds
+
+
+def test_readme_commands_parse():
+    """Each README command names a real command and options it takes, with valid values."""
+    import shlex
+
+    import typer
+
+    from lensforge.cli import app
+
+    group = typer.main.get_command(app)
+    cmds = _readme_commands()
+    assert len(cmds) >= 10 and any(c.startswith("lensforge budget") for c in cmds)
+    for line in cmds:
+        args = shlex.split(line)[1:]
+        ctx = group.make_context("lensforge", args[:1])
+        cmd = group.get_command(ctx, args[0])
+        assert cmd is not None, line
+        cmd.make_context(args[0], args[1:], parent=ctx)  # raises on an unknown option or a bad value
+
+
+def test_readme_library_example_runs(tmp_path, monkeypatch):
+    (code,) = _readme_blocks("python")
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README.md", "exec"), {})
+    assert (tmp_path / "zernike.optiland.json").stat().st_size > 0
+
+
+def test_command_list_summaries_are_whole_sentences():
+    """`lensforge --help` lists every command with its one-line summary, never cut off with '...'."""
+    from typer.testing import CliRunner
+
+    from lensforge.cli import app
+
+    r = CliRunner().invoke(app, ["--help"], terminal_width=80)
+    assert r.exit_code == 0 and "..." not in r.output.split("Commands:")[1]

@@ -348,7 +348,7 @@ def _sniff_pose_format(path: Path) -> str:
     raise ConfigError(f"{path}: empty robot poses file")
 
 
-def read_robot_poses(path, fmt: str | None = None) -> PoseTable:
+def read_robot_poses(path: str | os.PathLike[str], fmt: str | None = None) -> PoseTable:
     """Robot flange poses ^W T_E (mm) by id; fmt a POSE_READERS name, or None to detect
     it (.json -> json_4x4; a CSV header with qw -> quaternion_csv, else xyzabc_csv)."""
     path = Path(path)
@@ -465,7 +465,7 @@ def read_wfs_json(path) -> WfsData:
 WFS_READERS = {"wfs_csv": read_wfs_csv, "wfs_json": read_wfs_json}
 
 
-def read_wfs(path, fmt: str | None = None) -> WfsData:
+def read_wfs(path: str | os.PathLike[str], fmt: str | None = None) -> WfsData:
     """WFS measurements by id; fmt a WFS_READERS name or None (by extension: .json -> wfs_json)."""
     path = Path(path)
     fmt = fmt or ("wfs_json" if path.suffix.lower() == ".json" else "wfs_csv")

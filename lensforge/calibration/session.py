@@ -30,15 +30,18 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from os import PathLike
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from ..errors import CalibrationError, ConfigError, LensforgeError, PoseRangeError
 from ..optics.bench import Bench
-from ..optics.lens import Lens, resolve_lens
+from ..optics.lens import Lens, LensSpec, resolve_lens
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
@@ -53,6 +56,9 @@ from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scen
 from .session_joint import joint_session, resolve_tolerances
 from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict
 
+if TYPE_CHECKING:
+    from ..manufacturing.tolerances import Tolerances
+
 __all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
            "two_stage", "calibrate", "estimate", "load_design_lens",
            "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
@@ -63,7 +69,7 @@ CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha
 # ----------------------------------------------------------------------------- inputs
 
 
-def load_design_lens(design, bench: Bench | None = None) -> tuple[Lens, Bench]:
+def load_design_lens(design: LensSpec, bench: Bench | None = None) -> tuple[Lens, Bench]:
     """(lens, bench) of anything ``optics.lens.resolve_lens`` takes (design file, paper
     lens, Lens, Design); the bench is the given one, else the design's, else the default."""
     r = resolve_lens(design)
@@ -198,9 +204,10 @@ class Plan:
         }
 
 
-def plan(design, *, bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12, seed: int = 0,
-         tolerances="default", work_translation_mm: float = 0.5, work_rotation_rad: float = math.radians(5.0),
-         lit_margin_mm: float = 0.3, n_candidates: int = 100, n_random_sets: int = 5) -> Plan:
+def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
+         seed: int = 0, tolerances: Tolerances | str | PathLike[str] | None = "default", work_translation_mm: float = 0.5,
+         work_rotation_rad: float = math.radians(5.0), lit_margin_mm: float = 0.3, n_candidates: int = 100,
+         n_random_sets: int = 5) -> Plan:
     """Calibration poses for the joint calibration (see the module docstring).
 
     design: design file / paper lens name / Lens; robot: RobotModel, registry name or
@@ -279,7 +286,7 @@ def _estimate_one(model: ForwardModel, z: np.ndarray, starts) -> tuple[PoseEstim
     return None, reason or "the estimate did not converge"
 
 
-def estimate(design, measurement, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
+def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
     """One lens pose with its covariance from one WFS measurement.
 
     measurement: WFS CSV/JSON path or WfsData; pose_id selects a row (default: the
@@ -344,9 +351,11 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
                        scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected))
 
 
-def calibrate(design, measurements, robot_poses, *, bench: Bench | None = None,
-              robot: RobotModel | str | None = None, method: str = "joint", tolerances="default",
-              outlier_alpha: float = OUTLIER_ALPHA, progress=None) -> CalibrationResult:
+def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsData,
+              robot_poses: str | PathLike[str] | formats.PoseTable, *, bench: Bench | None = None,
+              robot: RobotModel | str | None = None, method: str = "joint",
+              tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
+              progress: Callable[[int, int], None] | None = None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or

@@ -56,9 +56,11 @@ def plan_cmd(
                                  help="comma list of calibration.formats.PLAN_WRITERS names; auto = csv,json (+krl for a KUKA)"),
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-):
-    """Plan the calibration poses the robot should visit (the joint calibration's Ds-optimal design
-    for Z with the as-built lens free; reach-checked, pupil-lit).
+) -> None:
+    """Plan the robot's calibration poses.
+
+    The joint calibration's Ds-optimal design for Z with the as-built lens free;
+    reach-checked by inverse kinematics and pupil-lit on the design.
 
     Writes plan_xyzabc.csv (pose,X,Y,Z,A,B,C: mm, deg, KUKA R = Rz(A) Ry(B) Rx(C)),
     plan_4x4.json, for a KUKA lf_calib.src/.dat (KRL E6POS points; $BASE = robot root,
@@ -105,8 +107,10 @@ def calibrate_cmd(
     out: Path = typer.Option(Path("exports/calibration"), "-o", "--out", help="output folder"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
-):
-    """Calibrate X (lens in the flange) and Z (sensor in the robot base) from a bench session.
+) -> None:
+    """Calibrate X and Z from a recorded bench session.
+
+    X = lens in the flange, Z = sensor in the robot base (mm, deg, 1-sigma).
 
     Writes calibration.json, easy_handeye.yaml (ROS), summary.txt and residuals.png."""
     with _progress(not (no_progress or json_out), "estimating lens poses") as cb:
@@ -128,8 +132,10 @@ def estimate_cmd(
     pose: Optional[str] = typer.Option(None, "--pose", help="pose id to use when the file holds several"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
-):
-    """Estimate one lens pose (relative to its nominal placement) with its covariance."""
+) -> None:
+    """Estimate one lens pose with its covariance.
+
+    The pose is relative to the lens's nominal placement: translation (um), rotation (mrad)."""
     from ..calibration.session import estimate
     from ..optics.pose import DOF_NAMES
 
@@ -158,8 +164,10 @@ def simulate_session_cmd(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-):
-    """Write the files of a simulated bench session (robot_poses.csv, wfs_zernike.csv, truth.json)."""
+) -> None:
+    """Simulate a bench session's files to rehearse calibrate.
+
+    Writes robot_poses.csv, wfs_zernike.csv and truth.json."""
     from ..calibration.formats import write_bundle
     from ..calibration.session import frame_dict
 

@@ -26,8 +26,10 @@ def demo(
     out: Path = typer.Option(Path("exports"), "-o", "--out", help="output folder"),
     quick: bool = typer.Option(False, "--quick", help="small budgets (smoke test)"),
     seed: int = typer.Option(0, "--seed", help="seed of the design and the study"),
-):
-    """Evaluate the paper lenses, design a Zernike lens, export it, verify it as built."""
+) -> None:
+    """The main job: evaluate, design, export, verify.
+
+    Evaluates the paper lenses, designs a Zernike lens, exports it, verifies it as built."""
     from ..design.design_file import save_design
     from ..design.optimize import DEFAULT_MAX_EVALS, optimize_design
     from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances

@@ -54,7 +54,7 @@ def design(
     out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
-):
+) -> None:
     """Optimise a freeform lens and write its design file."""
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
@@ -100,8 +100,12 @@ def plot(
     design_file: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
     out: Path = typer.Option(Path("exports"), "-o", "--out", help="folder for the PNGs"),
     json_out: bool = typer.Option(False, "--json", help="list the written files on stdout"),
-):
-    """Singular-value spectrum, sag maps and Zernike response per DOF as PNGs."""
+) -> None:
+    """Plot a design (PNGs).
+
+    Singular values, sag maps with the lit area, Zernike response per DOF, beam
+    footprint over the working range, lenslet slope field, dimensioned cross-section
+    and the optimiser's convergence history."""
     from ..design.design_file import load_design
     from ..optics.lens import resolve_lens
     from ..plots import design_plots
@@ -124,8 +128,10 @@ def compare(
     range_mm: float = typer.Option(1.0, "--range-mm", help="working range for the feasibility column (mm)"),
     range_deg: float = typer.Option(1.0, "--range-deg", help="working range for the feasibility column (deg)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
-):
-    """Table-1 analogue: all lenses evaluated on one bench."""
+) -> None:
+    """Compare lenses on one bench (Table-1 analogue).
+
+    Metrics, CRLB (um, urad), sensor range and feasibility (explained in words) per lens."""
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
 

@@ -25,9 +25,11 @@ def estimate_study(
     out: Path = typer.Option(Path("exports/estimate"), "-o", "--out", help="output folder (JSON, per-trial CSV, box plot PNG)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
-    """Estimate each lens's pose from noisy measurements TRIALS times; report error
-    statistics against the Cramer-Rao bound and write a Fig. 5-style box plot."""
+) -> None:
+    """Pose-estimation accuracy against the Cramer-Rao bound.
+
+    Estimates each lens's pose from noisy measurements TRIALS times, reports the error
+    statistics (um, urad) against the CRLB and writes a Fig. 5-style box plot."""
     from ..calibration.pose_estimation import ESTIMATORS
     from ..optics.lens import resolve_lens
     from ..verification.estimation_study import format_table, save_study, study_lens, study_to_dict
@@ -66,13 +68,14 @@ def scenario(
     runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
     method: str = typer.Option("lm", "--method", help="pose estimator: lm | ukf (the registry ESTIMATORS in calibration/pose_estimation.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed"),
-    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
-    """The paper's calibration procedure in simulation: 12 convergence poses, 12
-    calibration poses, lens poses estimated from noisy measurements, hand-eye
+) -> None:
+    """The paper's calibration procedure in simulation.
+
+    12 convergence poses, 12 calibration poses, lens poses estimated from noisy measurements, hand-eye
     solved with the estimator covariances; Z error vs its predicted bound."""
     from ..calibration.pose_estimation import ESTIMATORS
     from ..optics.lens import resolve_lens

@@ -63,8 +63,11 @@ def evaluate(
     lenses: List[str] = typer.Argument(..., help="paper lens names (spherical, polynomial, extended_polynomial, zernike) or design JSON files"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
-):
-    """Rank, condition number, sigma_min, cost J and Cramer-Rao bound of each lens."""
+) -> None:
+    """Design metrics and Cramer-Rao bound of each lens.
+
+    Rank, condition number kappa, sigma_min and cost J of the scaled, noise-whitened
+    sensitivity matrix, and the 1-sigma Cramer-Rao bound per pose DOF (um, urad)."""
     rows = evaluate_lenses(lenses, bench)
     if json_out:
         emit_json({"schema_version": 1, "lenses": rows})

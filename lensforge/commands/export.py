@@ -79,8 +79,10 @@ def export_cmd(
     slicer: bool = typer.Option(True, "--slicer/--no-slicer", help="Check the STL with PrusaSlicer if present."),
     no_progress: bool = typer.Option(False, "--no-progress", help="No progress bar."),
     json_out: bool = typer.Option(False, "--json", help="Machine-readable report on stdout."),
-):
-    """Export a lens as printable files and report whether the Form 2 can print it."""
+) -> None:
+    """Export printable files and a printability report.
+
+    STL/STEP (and 3MF) for the Form 2, with mesh, STEP, printer and PrusaSlicer checks."""
     if not math.isfinite(layer) or layer <= 0:
         raise ConfigError(f"--layer: must be a positive number of um, got {layer}")
     if not math.isfinite(chord_tol) or chord_tol <= 0:

@@ -138,7 +138,7 @@ def handeye_cmd(
                                                       "\"B\": [4x4...], \"noise\": {...}}"),
     robot_poses: Optional[Path] = typer.Option(None, "--robot-poses", help="A: flange poses file (any calibrate format)"),
     lens_poses: Optional[Path] = typer.Option(None, "--lens-poses", help="B: lens poses file (any calibrate format)"),
-    noise: Optional[Path] = typer.Option(None, "--noise", help="JSON with the noise model keys (see the docs)"),
+    noise: Optional[Path] = typer.Option(None, "--noise", help="JSON noise model: robot_sigma_trans_mm, robot_sigma_rot_deg, lens_sigma_trans_mm, lens_sigma_rot_deg (1-sigma per axis) or cov_A / cov_B; default: estimated from the residuals"),
     method: str = typer.Option("ml", "--method", help="ml | shah | li"),
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="output folder (handeye.json, easy_handeye.yaml)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
@@ -151,8 +151,11 @@ def handeye_cmd(
     obs_limit_rad: float = typer.Option(0.01, "--obs-limit-rad",
                                         help="the same for rotations (rad)"),
     plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
-):
-    """Solve A_i X = Z B_i (A = robot flange in base, B = lens in sensor frame)."""
+) -> None:
+    """Robot-world-hand-eye calibration A_i X = Z B_i.
+
+    A = robot flange in the robot base, B = lens in the sensor frame (4x4, mm or m);
+    X, Z with covariances, chi2 model check and observability."""
     # imported here so that `lensforge --help` stays fast (no scipy at CLI import)
     from ..calibration.formats import easy_handeye_yaml, write_bundle
     from ..calibration.handeye import solve_handeye

@@ -68,8 +68,11 @@ def study_cmd(
     out: Path = typer.Option(Path("exports/study"), "--out", "-o", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="summary on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
-    """Monte Carlo of the calibration over as-built lenses: store, summary JSON, PNGs."""
+) -> None:
+    """As-built Monte Carlo of the calibration.
+
+    Calibrates simulated as-built lenses; writes a resumable store, summary.json and PNGs
+    (Z error in mm and deg)."""
     from ..verification.statistics import format_counts
     from ..verification.study import StudyConfig, load_plan, verify
     from ..verification.study_plots import plot_error_histograms
@@ -138,14 +141,17 @@ def budget_cmd(
     seed: int = typer.Option(0, "--seed", help="seed (the same trials for every evaluation)"),
     workers: int = typer.Option(None, "--workers", help="local Dask workers (0 = in this process)"),
     scheduler: str = typer.Option(None, "--scheduler", help="address of an existing Dask scheduler"),
-    bench: Path = typer.Option(None, "--bench", help="bench TOML"),
+    bench: Path = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
     out: Path = typer.Option(Path("exports/budget"), "--out", "-o", help="output folder"),
     calibration: str = typer.Option("two-stage", "--calibration",
                                     help="two-stage, or joint (see `lensforge study`; about 10x the CPU per lens)"),
     json_out: bool = typer.Option(False, "--json", help="budget on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
-):
-    """Tolerance budget: the largest size of each tolerance meeting the target at the 95th pct."""
+) -> None:
+    """Tolerance budget for a target calibration accuracy.
+
+    The largest size of each tolerance (alone) whose p95 Z error meets the target,
+    and each tolerance's sensitivity."""
     from ..verification.budget import sensitivity_analysis, tolerance_budget
     from ..verification.runner import dask_client
     from ..verification.study import StudyConfig

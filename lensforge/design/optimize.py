@@ -25,6 +25,7 @@ import sys
 import time
 from collections import Counter
 from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Callable
 
 import numpy as np
@@ -393,8 +394,11 @@ def check_method(method: str) -> str:
 # --- public entry point ----------------------------------------------------------
 
 def optimize_design(bench: Bench | None = None, model: str = "zernike", method: str = "cmaes", seed: int = 0,
-                    criterion: str = "A", weights=(1.0, 1.0), free=None, bounds=None,
-                    constraints: Constraints | None = None, max_evals: int | None = None, start="paper",
+                    criterion: str = "A", weights: Sequence[float] = (1.0, 1.0),
+                    free: str | Sequence[str] | None = None,
+                    bounds: str | dict[str, tuple[float, float]] | None = None,
+                    constraints: Constraints | None = None, max_evals: int | None = None,
+                    start: str | np.ndarray = "paper",
                     n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.1,
                     ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,
                     template: Lens | None = None, robust: RobustSpec | None = None) -> Design:

@@ -12,6 +12,7 @@ from os import PathLike
 from numpy.typing import ArrayLike
 
 from dataclasses import dataclass, field, replace
+from typing import Protocol, TypeAlias
 from functools import cached_property
 from pathlib import Path
 
@@ -266,7 +267,18 @@ class ResolvedLens:
         return override or self.bench or Bench.default()
 
 
-def resolve_lens(spec: object) -> ResolvedLens:
+class HasLens(Protocol):
+    """Anything carrying a lens (e.g. a ``design.Design``); a ``bench`` attribute is used too."""
+
+    @property
+    def lens(self) -> Lens: ...
+
+
+#: what every function taking a design accepts (see :func:`resolve_lens`)
+LensSpec: TypeAlias = "str | PathLike[str] | Lens | ResolvedLens | HasLens"
+
+
+def resolve_lens(spec: LensSpec) -> ResolvedLens:
     """The one lens resolver of every command and study: a paper lens name
     (spherical, polynomial, extended_polynomial, zernike; '-' for '_' accepted),
     'paper:NAME', a design JSON file (lens under key "lens", bench under "bench"), a

@@ -261,7 +261,7 @@ class ForwardModel:
         z = self.pupil.fit(slopes)
         return ZernikeResult(z, slopes, irr_mean, status, valid, uv, n, thr, use, sensor.spot_assignment)
 
-    def sensor_range(self, pose=None) -> SensorRange:
+    def sensor_range(self, pose: ArrayLike | None = None) -> SensorRange:
         """Spot-assignment summary at ``pose`` (default nominal): ok, max slope, lenslets out."""
         res = self.evaluate(np.zeros(6) if pose is None else pose, check_range=False)
         return summarize_range(self.bench.sensor, self.bench.laser.wavelength_nm, res.slopes[0], res.range_use[0])

@@ -12,10 +12,10 @@ import json
 from importlib import resources
 from typing import Any
 
-__all__ = ["COMMANDS", "load_schema", "render_markdown"]
+__all__ = ["COMMANDS", "load_schema", "render_markdown", "resolve_ref"]
 
-COMMANDS = ("evaluate", "design", "plot", "compare", "export", "estimate-study", "scenario", "handeye", "study",
-            "budget")
+COMMANDS = ("evaluate", "design", "plot", "compare", "export", "estimate", "estimate-study", "scenario", "handeye",
+            "plan", "calibrate", "simulate-session", "study", "budget")
 
 
 def load_schema(command: str) -> dict[str, Any]:
@@ -30,19 +30,31 @@ def _type(p: dict) -> str:
     return " or ".join(t) if isinstance(t, list) else str(t)
 
 
-def _rows(props: dict, required: list, prefix: str = "") -> list[str]:
+def resolve_ref(p: dict, root: dict) -> dict:
+    """p with a local ``$ref`` (``#/$defs/NAME``) merged in; p's own keys (description) win."""
+    ref = p.get("$ref")
+    if not ref:
+        return p
+    target = root
+    for part in ref.removeprefix("#/").split("/"):
+        target = target[part]
+    return {**target, **{k: v for k, v in p.items() if k != "$ref"}}
+
+
+def _rows(props: dict, required: list, root: dict, prefix: str = "") -> list[str]:
     out = []
     for k, p in props.items():
         name = f"{prefix}{k}"
+        p = resolve_ref(p, root)
         out.append(f"| `{name}` | {_type(p)} | {'yes' if k in required else 'no'} | {p.get('description', '')} |")
         if p.get("type") == "object" and p.get("properties"):
-            out += _rows(p["properties"], p.get("required", []), name + ".")
+            out += _rows(p["properties"], p.get("required", []), root, name + ".")
         items = p.get("items")
         if isinstance(items, dict) and items.get("properties"):
-            out += _rows(items["properties"], items.get("required", []), name + "[].")
+            out += _rows(items["properties"], items.get("required", []), root, name + "[].")
         extra = p.get("additionalProperties")
         if isinstance(extra, dict) and extra.get("properties"):
-            out += _rows(extra["properties"], extra.get("required", []), name + ".<name>.")
+            out += _rows(extra["properties"], extra.get("required", []), root, name + ".<name>.")
     return out
 
 
@@ -58,5 +70,5 @@ def render_markdown() -> str:
         s = load_schema(c)
         lines += [f"## `lensforge {c} --json`", "", s.get("description", ""), "",
                   "| key | type | always | meaning |", "| --- | --- | --- | --- |",
-                  *_rows(s["properties"], s.get("required", [])), ""]
+                  *_rows(s["properties"], s.get("required", []), s), ""]
     return "\n".join(lines)

@@ -18,14 +18,23 @@ largest one *evaluated* that meets the target (conservative).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import ConfigError
 from ..manufacturing.tolerances import COMPONENT_SPECS
-from ..optics.lens import resolve_lens
+from ..optics.lens import LensSpec, resolve_lens
 from .runner import dask_client
 from .study import StudyConfig, resolve_tolerances, verify
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from ..manufacturing.tolerances import Tolerances
+    from ..optics.bench import Bench
 
 __all__ = ["SensitivityRow", "BudgetRow", "Budget", "sensitivity_analysis", "tolerance_budget", "scaled_all",
            "MAIN_FIELD"]
@@ -34,7 +43,7 @@ __all__ = ["SensitivityRow", "BudgetRow", "Budget", "sensitivity_analysis", "tol
 MAIN_FIELD = {name: c.main for name, c in COMPONENT_SPECS.items()}
 
 
-def scaled_all(tolerances, factor: float):
+def scaled_all(tolerances: Tolerances, factor: float) -> Tolerances:
     """Every component's magnitudes times ``factor``."""
     t = tolerances
     for name in t.component_names():
@@ -79,8 +88,9 @@ def _row(name: str, res) -> SensitivityRow:
                           s["failure_rate"], s["target_ratio"])
 
 
-def sensitivity_analysis(lens, tolerances, n_lenses: int, seed: int, bench=None, *, config: StudyConfig | None = None,
-                         workers: int | None = 0, scheduler: str | None = None, client=None,
+def sensitivity_analysis(lens: LensSpec, tolerances: Tolerances | str | Path, n_lenses: int, seed: int, bench: Bench | None = None,
+                         *, config: StudyConfig | None = None, workers: int | None = 0, scheduler: str | None = None,
+                         client: Client | None = None,
                          progress: bool = False) -> list[SensitivityRow]:
     """Rows "none" (noise only), one per component (alone, at its given size), "all"."""
     r = resolve_lens(lens)
@@ -164,7 +174,7 @@ def _ratio(res) -> float:
     return math.inf if r is None else float(r)
 
 
-def search_scale(f, f0: float, rel_tol: float = 0.1, max_evals: int = 8, s_min: float = 1e-3,
+def search_scale(f: Callable[[float], float], f0: float, rel_tol: float = 0.1, max_evals: int = 8, s_min: float = 1e-3,
                  s_max: float = 1e3) -> tuple[float | None, float | None, str, list]:
     """Largest s in [s_min, s_max] with f(s) <= 1, given f(0) = f0 (see module doc).
 
@@ -213,10 +223,11 @@ def search_scale(f, f0: float, rel_tol: float = 0.1, max_evals: int = 8, s_min: 
     return lo, flo, "ok", evals
 
 
-def tolerance_budget(lens, tolerances, *, target_mm: float = 0.1, target_deg: float = 0.01, n_lenses: int = 64,
-                     seed: int = 0, bench=None, config: StudyConfig | None = None, rel_tol: float = 0.1,
-                     max_evals: int = 8, workers: int | None = 0, scheduler: str | None = None, client=None,
-                     components=None, relative_to_noise: float | None = None,
+def tolerance_budget(lens: LensSpec, tolerances: Tolerances | str | Path, *, target_mm: float = 0.1, target_deg: float = 0.01,
+                     n_lenses: int = 64, seed: int = 0, bench: Bench | None = None, config: StudyConfig | None = None,
+                     rel_tol: float = 0.1, max_evals: int = 8, workers: int | None = 0, scheduler: str | None = None,
+                     client: Client | None = None, components: Sequence[str] | None = None,
+                     relative_to_noise: float | None = None,
                      progress: bool = False) -> Budget:
     """The tolerance budget table (see module doc). Each evaluation is a study of
     ``n_lenses`` as-built lenses with the same seeds; config sets the poses etc.

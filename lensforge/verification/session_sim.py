@@ -31,11 +31,12 @@ from ..calibration import formats
 from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.robot import RobotModel
 from ..calibration.formats import write_bundle
-from ..calibration.session import SCHEMA_VERSION, calibrate, frame_dict, load_design_lens, plan
+from ..calibration.session import SCHEMA_VERSION, Plan, calibrate, frame_dict, load_design_lens, plan
 from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json
 from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
 from ..optics.bench import Bench
+from ..optics.lens import LensSpec
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
@@ -79,9 +80,9 @@ class SimulatedSession:
                 "truth.json": dumps_json(truth) + "\n"}
 
 
-def simulate_session(design, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
+def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
                      bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
-                     grasp: InitialPoseModel | None = None, session_plan=None) -> SimulatedSession:
+                     grasp: InitialPoseModel | None = None, session_plan: Plan | None = None) -> SimulatedSession:
     """Simulate one bench session (see the module docstring).
 
     tolerances: Tolerances, a TOML path, "default" (the default tolerance file) or

@@ -30,7 +30,9 @@ import warnings
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from functools import cached_property
+from os import PathLike
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -41,12 +43,17 @@ from ..calibration.robot import flange_pose, lens_pose_matrix, paper_scene
 from ..errors import ConfigError, LensforgeError
 from ..manufacturing.tolerances import load_tolerances, sample_as_built
 from ..optics.bench import Bench
-from ..optics.lens import Lens, resolve_lens
+from ..optics.lens import Lens, LensSpec, resolve_lens
 from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
 from ..optics.shack_hartmann import ForwardModel
 from ..calibration.pose_estimation import estimate_poses_batch
 from .statistics import error_stats, outcome_counts
 from .runner import TrialStore, config_hash, run_trials
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from ..manufacturing.tolerances import Tolerances
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "run_trial", "StudyContext", "summarize_errors",
            "SCHEMA_VERSION", "CALIBRATIONS", "calibration_records", "joint_statistics"]
@@ -347,7 +354,7 @@ class StudyResult:
                                 t["rotation_deg"], self.summary["percentile"])
 
 
-def resolve_tolerances(tolerances):
+def resolve_tolerances(tolerances: Tolerances | str | Path | None) -> Tolerances | None:
     """A Tolerances from a Tolerances, a TOML path, or None (noise only -> None)."""
     if tolerances is None:
         return None
@@ -465,10 +472,11 @@ def result_from_records(records: dict[int, dict], config: dict, chash: str, stor
                        config=config, config_hash=chash, store=Path(store) if store else None, stats=stats)
 
 
-def verify(design_or_lens, tolerances, n_lenses: int, seed: int, bench: Bench | None = None, n_poses: int = 24, *,
-           workers: int | None = None, scheduler: str | None = None, store=None, resume: bool = False,
-           progress: bool = True, calibration: str = "two-stage", config: StudyConfig | None = None,
-           plan_seed: int = 0, client=None, description: str = "as-built lenses", plan=None) -> StudyResult:
+def verify(design_or_lens: LensSpec, tolerances: Tolerances | str | Path | None, n_lenses: int, seed: int,
+           bench: Bench | None = None, n_poses: int = 24, *, workers: int | None = None, scheduler: str | None = None,
+           store: str | PathLike[str] | None = None, resume: bool = False, progress: bool = True,
+           calibration: str = "two-stage", config: StudyConfig | None = None, plan_seed: int = 0,
+           client: Client | None = None, description: str = "as-built lenses", plan: np.ndarray | None = None) -> StudyResult:
     """As-built Monte Carlo of the calibration for ``n_lenses`` as-built lenses.
 
     design_or_lens: Lens, Design, paper lens name or design JSON path; tolerances:
