@@ -222,6 +222,7 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     status = np.where(valid, "max_iter", "unlit").astype(object)
     n_iter = np.zeros(P, int)
     proj = np.broadcast_to(eye, (P, 6, 6)).copy()  # projector on the estimated directions
+    bases = [eye] * P  # (6, k) estimated directions per pose
     null = np.zeros((P, 6), bool)  # DOF moved by a numerically null direction
     observable = np.ones((P, 6), bool)  # the statistical rule
     # Forward differences (half the traces) while far from the minimum; central ones
@@ -251,7 +252,8 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
                     basis, observable[p], null[p] = ob.basis, ob.observable, ~np.isfinite(ob.std)
                 else:
                     basis, observable[p], null[p] = _start.basis, _start.observable, _start.null
-                proj[p] = basis @ basis.T
+                bases[p] = basis
+                proj[p] = eye if basis.shape[1] == 6 else basis @ basis.T  # exact when full rank
             first = False
         a = np.flatnonzero(active)
         if a.size == 0:
@@ -321,17 +323,13 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
         active[far] = False
     # covariance from the Jacobian at the last linearisation point, on the estimated directions
     cov = np.full((P, 6, 6), np.nan)
-    v = np.flatnonzero(valid)
-    if v.size:
-        Pv = proj[v]
-        Jv = J[v] @ Pv
-        F = np.einsum("pmi,pmj->pij", Jv, Jv) + (eye - Pv)
+    for p in np.flatnonzero(valid):
+        Jb = J[p] @ bases[p]  # d r / d (coordinates along the estimated directions)
         try:
-            c = np.linalg.inv(F)
+            cb = np.linalg.inv(Jb.T @ Jb)
         except np.linalg.LinAlgError:
-            c = np.linalg.pinv(F)
-        c = (c - (eye - Pv)) * np.outer(D, D)
-        cov[v] = [_mark_unobservable(ci, nl) for ci, nl in zip(c, null[v])]
+            cb = np.linalg.pinv(Jb.T @ Jb)
+        cov[p] = _mark_unobservable((bases[p] @ cb @ bases[p].T) * np.outer(D, D), null[p])
     in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
                 & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
     stopped = np.isin(status, ("converged", "flat", "far"))
