@@ -40,7 +40,7 @@ from ..errors import ConfigError
 from ..manufacturing.tolerances import scale_canonical
 from ..optics.lens import Lens
 from ..optics.shack_hartmann import ForwardModel
-from ..optics.surfaces import CanonicalSurface, Freeform
+from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials
 from ..optics.zernike import zernike_monomials
 
 __all__ = ["LensSpace", "LensParameterisation", "lens_space", "parameterise", "SIDES", "MODE_NAMES"]
@@ -49,15 +49,6 @@ SIDES = ("front", "back")
 # Noll mode -> aberration name (for reports)
 MODE_NAMES = {2: "tilt x (wedge)", 3: "tilt y (wedge)", 4: "power", 5: "astigmatism 45", 6: "astigmatism 0",
               7: "coma y", 8: "coma x", 9: "trefoil y", 10: "trefoil x", 11: "spherical"}
-
-
-def _poly_sum(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Sum of two square monomial arrays of possibly different degree."""
-    n = max(a.shape[0], b.shape[0])
-    out = np.zeros((n, n))
-    out[:a.shape[0], :a.shape[1]] += a
-    out[:b.shape[0], :b.shape[1]] += b
-    return out
 
 
 def _mode_poly(j: int, radius: float) -> np.ndarray:
@@ -111,14 +102,14 @@ class LensSpace:
             for j in self.form_modes:
                 a = v.get(f"{side}_Z{j}_mm", 0.0)
                 if a:
-                    poly = _poly_sum(poly, a * self._mode_polys[j])
+                    poly = add_monomials(poly, a * self._mode_polys[j])
             cs = CanonicalSurface(cs.c, cs.k, cs.alpha.copy(), poly, cs.ripple_amplitude, cs.ripple_period)
             if s != 1.0:
                 cs = scale_canonical(cs, s)
             sign = 1.0 if side == "front" else -1.0  # removal moves the surface into the material
             depth, roll = v[f"{side}_polish_depth_mm"], v[f"{side}_rolloff_mm"]
             if depth or roll:
-                poly = _poly_sum(cs.poly, np.zeros((1, 1)))
+                poly = add_monomials(cs.poly, np.zeros((1, 1)))
                 poly[0, 0] += sign * depth
                 alpha = cs.alpha.copy()
                 alpha[self.rolloff_power // 2 - 1] += sign * roll / (s * Ra) ** self.rolloff_power

@@ -49,7 +49,7 @@ from ..fileio import read_toml, write_atomic
 from ..schema import Num, check_header, check_ranges
 from ..optics.lens import Lens
 from ..optics.materials import Material
-from ..optics.surfaces import CanonicalSurface, Freeform
+from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials
 from ..optics.zernike import zernike_monomials
 
 __all__ = ["Tolerances", "load_tolerances", "save_tolerances", "sample_as_built", "scale_canonical",
@@ -200,14 +200,6 @@ def _gamma(mean: float, sd: float, u: float) -> float:
     return float(sd * sd / mean * gammaincinv(k, u))
 
 
-def _add_poly(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    n = max(a.shape[0], b.shape[0])
-    out = np.zeros((n, n))
-    out[: a.shape[0], : a.shape[1]] += a
-    out[: b.shape[0], : b.shape[1]] += b
-    return out
-
-
 def _form_poly(modes, coeffs, radius: float) -> np.ndarray:
     """Monomial array of sum_j a_j Z_j(x/R, y/R) (mm)."""
     out = np.zeros((1, 1))
@@ -216,7 +208,7 @@ def _form_poly(modes, coeffs, radius: float) -> np.ndarray:
             continue
         m = np.asarray(zernike_monomials(j), float)
         pq = np.add.outer(np.arange(m.shape[0]), np.arange(m.shape[1]))
-        out = _add_poly(out, a * m / radius ** pq)
+        out = add_monomials(out, a * m / radius ** pq)
     return out
 
 
@@ -226,7 +218,7 @@ def _form_effect(st: AsBuiltState, t, z) -> None:
     if mode_sd > 0:
         for k, side in enumerate(SIDES):
             cs = st.surfaces[side]
-            poly = _add_poly(cs.poly, _form_poly(t.form_modes, mode_sd * z[k], st.radius))
+            poly = add_monomials(cs.poly, _form_poly(t.form_modes, mode_sd * z[k], st.radius))
             st.set_surface(side, CanonicalSurface(cs.c, cs.k, cs.alpha, poly, cs.ripple_amplitude, cs.ripple_period))
 
 

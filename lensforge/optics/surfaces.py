@@ -41,10 +41,20 @@ __all__ = [
     "Freeform",
     "surface_from_dict",
     "extended_monomial_exponents",
+    "add_monomials",
     "N_ASPHERIC",
 ]
 
 N_ASPHERIC = 8  # even aspheric terms alpha_1 .. alpha_8 (r^2 .. r^16)
+
+
+def add_monomials(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sum of two square monomial arrays (x^p y^q coefficients) of possibly different degree."""
+    n = max(a.shape[0], b.shape[0])
+    out = np.zeros((n, n))
+    out[: a.shape[0], : a.shape[1]] += a
+    out[: b.shape[0], : b.shape[1]] += b
+    return out
 
 
 @dataclass(frozen=True)
