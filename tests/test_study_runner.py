@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
@@ -17,6 +18,34 @@ from lensforge.verification.study import StudyConfig, verify
 
 CFG = StudyConfig(n_poses=8, min_poses=4)
 LENS = "extended_polynomial"
+
+
+# Trial records must match across worker counts and after a resume. Bit for bit they do with
+# OpenBLAS's generic and Prescott kernels; with its Haswell (AVX2) kernels an in-process run
+# that follows other work in the same process differs from a fresh worker by up to 2e-4
+# relative (1e-4 of the trial's own sigma) even with BLAS pinned to one thread: the LM fits
+# stop at a different point inside their tolerance. Any mixed-up, lost or recomputed-from-a-
+# different-seed trial differs at O(1), so records are compared to 1e-3 of each value's scale.
+REC_RTOL = 1e-3
+
+
+def _close(a, b) -> bool:
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b):
+            return False
+        if all(isinstance(v, float) for v in [*a, *b]) and a:
+            scale = max(abs(v) for v in [*a, *b])
+            return all(abs(x - y) <= REC_RTOL * scale for x, y in zip(a, b))
+        return all(_close(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or abs(a - b) <= REC_RTOL * max(abs(a), abs(b))
+    return a == b
+
+
+def _same_records(ra, rb) -> bool:
+    return len(ra) == len(rb) and all(_close(a, b) for a, b in zip(ra, rb))
 
 
 def _rows(path):
@@ -35,7 +64,7 @@ def test_same_seed_same_results_with_0_1_2_workers():
     r0 = verify(LENS, None, 4, 21, config=CFG, workers=0, progress=False)
     r1 = verify(LENS, None, 4, 21, config=CFG, workers=1, progress=False)
     r2 = verify(LENS, None, 4, 21, config=CFG, workers=2, progress=False)
-    assert r0.records == r1.records == r2.records
+    assert _same_records(r0.records, r1.records) and _same_records(r0.records, r2.records)
     assert r2.stats.workers == 2
 
 
@@ -77,7 +106,9 @@ def test_resume_after_kill_ends_identical_to_an_uninterrupted_run(tmp_path, work
     assert 3 <= len(partial) < n
     res = verify(LENS, None, n, 5, config=CFG, workers=0, store=killed, resume=True, progress=False)
     assert res.stats.n_resumed == len(partial) and res.stats.n_run == n - len(partial)
-    assert _rows(killed) == _rows(ref)
+    rk, rr = _rows(killed), _rows(ref)
+    assert [i for i, _ in rk] == [i for i, _ in rr] == list(range(n))
+    assert _same_records([json.loads(r) for _, r in rk], [json.loads(r) for _, r in rr])
 
 
 def test_store_refuses_a_different_study_and_silent_overwrite(tmp_path):
