@@ -66,6 +66,7 @@ _THETA_STEP = 0.05  # difference step in theta (prior-sigma units; h is near-lin
 _REFRESH_RATIO = 0.5
 # converged when the remaining Gauss-Newton step is below this many 1-sigma (Mahalanobis length)
 _STEP_TOL = 1e-2
+_NUMERIC_FLOOR = 1e-9  # whitened misfit per dof treated as zero (a remaining step below ~3e-7 sigma)
 # largest theta step per iteration (prior sigmas): the start's pose error must not be absorbed by theta
 _THETA_TRUST = 3.0
 # a step shorter than this (1-sigma units) keeps central Jacobians fresh for the covariance
@@ -377,7 +378,9 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         # (compared in 1-sigma units scaled by the residuals' RMS: noise-free data converge too)
         Sg, rhs, _ = _schur(Hgg, bg, Haa, Hga, ba)
         dec = float(rhs @ _solve(Sg, rhs))
-        scale = max(cost / dof, 1e-300)
+        # below _NUMERIC_FLOOR the misfit is the forward model's own rounding (noise-free
+        # data: whitened RMS ~3e-8), where the decrement fits rounding and never shrinks
+        scale = max(cost / dof, _NUMERIC_FLOOR)
         if dec < tol ** 2 * scale:
             if fresh:  # at the minimum, by the covariance's own Jacobians
                 converged = True
