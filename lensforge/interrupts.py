@@ -50,24 +50,27 @@ class Interrupted(BaseException):
     """The user pressed Ctrl-C (SIGINT) while a lensforge command ran."""
 
 
-def _child_pids() -> list[int]:
-    """Our direct child processes (Dask workers, multiprocessing's resource tracker), from /proc."""
-    me, pids = os.getpid(), []
+def _parent_map() -> dict[int, int]:
+    """{pid: parent pid} of every process, from /proc (empty where there is no /proc)."""
+    parent_of = {}
     try:
         entries = os.listdir("/proc")
     except OSError:  # pragma: no cover - not Linux
-        return []
+        return parent_of
     for e in entries:
-        if not e.isdigit():
-            continue
-        try:
-            with open(f"/proc/{e}/stat", "rb") as fh:
-                stat = fh.read().decode(errors="replace")
-            if int(stat.rsplit(")", 1)[1].split()[1]) == me:
-                pids.append(int(e))
-        except (OSError, ValueError, IndexError):
-            continue
-    return pids
+        if e.isdigit():
+            try:
+                with open(f"/proc/{e}/stat", "rb") as fh:
+                    parent_of[int(e)] = int(fh.read().decode(errors="replace").rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    return parent_of
+
+
+def _child_pids() -> list[int]:
+    """Our direct child processes (Dask workers, multiprocessing's resource tracker)."""
+    me = os.getpid()
+    return [p for p, pp in _parent_map().items() if pp == me]
 
 
 def _kill_children() -> None:
@@ -160,18 +163,7 @@ _FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 def descendants(root: int) -> list[int]:
     """All processes below ``root`` (children first level first), from /proc."""
-    parent_of = {}
-    try:
-        entries = os.listdir("/proc")
-    except OSError:  # pragma: no cover - not Linux
-        return []
-    for e in entries:
-        if e.isdigit():
-            try:
-                with open(f"/proc/{e}/stat", "rb") as fh:
-                    parent_of[int(e)] = int(fh.read().decode(errors="replace").rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                continue
+    parent_of = _parent_map()
     out, frontier = [], [root]
     while frontier:
         kids = [p for p, pp in parent_of.items() if pp in frontier]
