@@ -254,3 +254,15 @@ def test_study_takes_a_pose_plan(tmp_path):
     r = subprocess.run(exe + ["study", "zernike", "-n", "1", "--pose-plan", str(bad), "-o", str(tmp_path / "o")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "bad.json" in r.stderr, r.stderr
+
+
+def test_pose_plan_in_wrong_units_is_refused():
+    """A plan pose outside the bench's pose range (e.g. um or m written for mm) is a unit
+    mistake: refused before any trial runs, with the unit named."""
+    from lensforge.errors import ConfigError
+    from lensforge.verification.study import verify
+
+    plan = calibration_plan(StudyConfig(n_poses=6))
+    plan[2, 2] = 500.0  # mm: far outside the bench's +-5 mm
+    with pytest.raises(ConfigError, match=r"pose plan: .*exceeds bench.pose_limits.*mm and rad"):
+        verify("zernike", Tolerances.zero(), 1, 0, workers=0, progress=False, plan=plan)

@@ -40,12 +40,12 @@ from ..calibration.handeye import solve_handeye
 from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.pose_estimation import estimate_poses_batch
 from ..calibration.robot import flange_pose, lens_pose_matrix, paper_scene
-from ..errors import ConfigError, LensforgeError
+from ..errors import ConfigError, LensforgeError, PoseRangeError
 from ..manufacturing.tolerances import load_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import Lens, LensSpec, resolve_lens
 from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
-from ..optics.shack_hartmann import ForwardModel
+from ..optics.shack_hartmann import ForwardModel, check_pose_range
 from ..calibration.pose_estimation import estimate_poses_batch
 from .statistics import error_stats, outcome_counts
 from .runner import TrialStore, config_hash, run_trials
@@ -408,7 +408,14 @@ def make_context(lens: Lens, bench: Bench, tolerances, config: StudyConfig, plan
     if grasp_sigma is None:
         m = InitialPoseModel()
         grasp_sigma = np.array([m.grasp_translation_mm] * 3 + [m.grasp_rotation_rad] * 3)
-    plan = calibration_plan(config, plan_seed) if plan is None else check_plan(plan)
+    if plan is None:
+        plan = calibration_plan(config, plan_seed)
+    else:
+        plan = check_plan(plan)
+        try:  # a plan outside the bench's pose range is a unit or frame mistake (um or m for mm, deg for rad)
+            check_pose_range(bench, plan)
+        except PoseRangeError as e:
+            raise ConfigError(f"pose plan: {e} (plan poses are mm and rad about nominal)") from None
     if len(plan) != config.n_poses:
         raise ConfigError(f"pose plan: {len(plan)} poses but n_poses is {config.n_poses}")
     return StudyContext(lens=lens, bench=bench, tolerances=tolerances, config=config,
