@@ -54,7 +54,7 @@ from .pose_design import candidate_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 from .session_joint import joint_session, resolve_tolerances
-from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict
+from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict, std_dict
 
 if TYPE_CHECKING:
     from ..manufacturing.tolerances import Tolerances
@@ -132,12 +132,6 @@ def lens_pose_crlb(bench: Bench, lens: Lens) -> np.ndarray:
 # ----------------------------------------------------------------------------- plan
 
 
-def _std_dict(d) -> dict:
-    """{tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg} of a (6,) 1-sigma (mm, rad)."""
-    return {"tx_mm": float(d[0]), "ty_mm": float(d[1]), "tz_mm": float(d[2]), "rx_deg": math.degrees(d[3]),
-            "ry_deg": math.degrees(d[4]), "rz_deg": math.degrees(d[5])}
-
-
 @dataclass(frozen=True, eq=False)
 class Plan:
     """Calibration poses for the robot.
@@ -190,8 +184,8 @@ class Plan:
             "n_lens_parameters": len(self.predicted["theta_sigma"]),
             "work_box": {"translation_mm": self.work_translation_mm,
                          "rotation_deg": math.degrees(self.work_rotation_rad)},
-            "predicted_Z_std": _std_dict(self.z_std),
-            "predicted_Z_std_known_lens": _std_dict(self.z_std_known_lens),
+            "predicted_Z_std": std_dict(self.z_std),
+            "predicted_Z_std_known_lens": std_dict(self.z_std_known_lens),
             "predicted_Z_translation_rms_mm": float(self.predicted["Z_translation_mm"]),
             "predicted_Z_rotation_rms_deg": float(self.predicted["Z_rotation_deg"]),
             "predicted_Z_translation_rms_known_lens_mm": float(self.predicted["Z_translation_known_lens_mm"]),

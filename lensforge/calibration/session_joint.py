@@ -1,6 +1,6 @@
 """The joint as-built calibration of a bench session (``calibrate(..., method="joint")``).
 
-The joint maximum-likelihood calibration (``joint.joint_calibrate_from``) on the raw
+The joint maximum-likelihood calibration (``joint.joint_calibrate``) on the raw
 Zernike vectors and the recorded flange poses is run from EVERY start and the best
 fit kept (``best_joint_fit``): the X, Z of a start method (``session.two_stage``, given
 by ``session.joint``) and the robot program's nominal X, Z (the cell's). Running both
@@ -34,9 +34,9 @@ from scipy.stats import chi2 as chi2_dist
 from ..errors import CalibrationError, LensforgeError
 from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
 from ..optics.pose import invert_poses, matrix_to_pose
-from .joint import JointProblem, joint_calibrate_from
+from .joint import JointProblem, joint_calibrate
 from .lens_params import parameterise
-from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData
+from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, std_dict
 
 __all__ = ["JointFrames", "best_joint_fit", "joint_session", "resolve_tolerances"]
 
@@ -88,7 +88,7 @@ def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, rob
         else:
             param = params[i]
         try:
-            res = joint_calibrate_from(bench, param, z, A, T_SO_nominal, [(X0, Z0)], robot_cov, alpha=alpha)
+            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, alpha=alpha)
         except CalibrationError as e:
             error = e
             continue
@@ -145,12 +145,12 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
                     * max(1.0, float(np.median(zc)) / chi2_dist.median(m)))
         out = zc > thr
         if attempt == 0 and out.any() and (~out).sum() >= 3:
-            for k in used_idx[out]:
-                j = int(np.flatnonzero(used_idx == k)[0])
+            for j in np.flatnonzero(out):
+                k = used_idx[j]
                 first_outliers.append({"pose": str(ids[k]), "handeye_chi2": float(rc[j]),
                                        "estimate_chi2_dof": float(zc[j] / m), "outlier": True})
                 rejected.append({"pose": str(ids[k]), "reason": f"outlier: joint Zernike residual chi2 "
-                                 f"{zc[used_idx == k][0]:.3g} above the robust threshold {thr:.3g} ({m} DOF)"})
+                                 f"{zc[j]:.3g} above the robust threshold {thr:.3g} ({m} DOF)"})
             keep[used_idx[out]] = False
             continue
         break
@@ -170,9 +170,7 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
                                  "identifiable": [names[i] for i in np.flatnonzero(res.identifiable)],
                                  "n_identifiable": s["n_identifiable"],
                                  "units": "prior sigma of the tolerance model (prior N(0, 1))"},
-             "Z_std_known_lens": {"tx_mm": s["Z_sigma_known_lens_mm"][0], "ty_mm": s["Z_sigma_known_lens_mm"][1],
-                                  "tz_mm": s["Z_sigma_known_lens_mm"][2], "rx_deg": s["Z_sigma_known_lens_deg"][0],
-                                  "ry_deg": s["Z_sigma_known_lens_deg"][1], "rz_deg": s["Z_sigma_known_lens_deg"][2]},
+             "Z_std_known_lens": std_dict(np.sqrt(np.diag(res.crlb_Z_known_lens))),
              "iterations": res.iterations, "converged": bool(res.converged), "start": start_names[i_best]}
     frames = JointFrames(X=res.X, Z=res.Z, cov_X=res.cov_X, cov_Z=res.cov_Z, joint=res)
     return CalibrationResult(X=res.X, Z=res.Z, handeye=frames, poses_used=tuple(ids[used_idx].tolist()),

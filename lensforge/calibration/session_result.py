@@ -15,11 +15,21 @@ from ..optics.shack_hartmann import ForwardModel
 from . import formats
 from .robot import RobotModel, Scene
 
-__all__ = ["CalibrationResult", "SessionData", "frame_dict", "OUTLIER_ALPHA", "SCHEMA_VERSION"]
+__all__ = ["CalibrationResult", "SessionData", "frame_dict", "std_dict", "OUTLIER_ALPHA", "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
 
 # ----------------------------------------------------------------------------- frames for output
+
+
+STD_KEYS = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
+
+
+def std_dict(sigma) -> dict:
+    """{tx_mm, ty_mm, tz_mm, rx_deg, ry_deg, rz_deg} of a (6,) 1-sigma in (mm, rad);
+    a non-finite entry (unobservable) is None."""
+    scale = (1.0, 1.0, 1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi)
+    return {n: (float(s * k) if np.isfinite(s) else None) for n, s, k in zip(STD_KEYS, sigma, scale)}
 
 
 def frame_dict(T: np.ndarray, cov_right: np.ndarray) -> dict:
@@ -44,13 +54,11 @@ def frame_dict(T: np.ndarray, cov_right: np.ndarray) -> dict:
         cov[touched, :] = np.nan
         cov[:, touched] = np.nan
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    names = ("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg")
-    scale = (1.0, 1.0, 1.0, 180.0 / math.pi, 180.0 / math.pi, 180.0 / math.pi)
     return {
         "matrix": T.tolist(),
         "xyzabc": formats.matrix_to_xyzabc(T).tolist(),
         "quaternion_wxyz": formats.matrix_to_quaternion(T).tolist(),
-        "std": {n: (float(s * k) if np.isfinite(s) else None) for n, s, k in zip(names, std, scale)},
+        "std": std_dict(std),
         "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in cov],
     }
 
