@@ -9,6 +9,12 @@ plane z = 0 of {S}. Each ray carries a status code:
     CLIPPED (outside the clear aperture), BACKWARD (does not reach the sensor),
     NOT_AIMED (ray aiming did not converge)
 
+Every ray also carries its exact first derivatives along the beam coordinates (u, v):
+forward differentiation of the intersection (implicit in the sag equation, with the
+sag's Hessian for the normal) and of Snell's law at each surface. Ray aiming takes its
+Newton steps with them (one trace per step, where finite differences took three) and
+the irradiance weights use the exact |det d(X, Y)/d(u, v)| they give.
+
 The lens frame {O} is posed by T_SO = T_SO(nominal) [R(r), t]; nominal places {O}
 at z = -d in {S} with parallel axes (DESIGN.md).
 """
@@ -106,71 +112,140 @@ def pose_frames(bench: Bench, poses) -> tuple[np.ndarray, np.ndarray]:
 # ----------------------------------------------------------------------------- kernels
 
 @nb.njit(cache=True, fastmath=_FM)
-def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y):
-    """(z, dz/dx, dz/dy, ok) of surface s at (x, y)."""
+def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
+    """(z, dz/dx, dz/dy, d2z/dx2, d2z/dxdy, d2z/dy2, ok) of surface s at (x, y); the
+    second derivatives only when ``hess`` (else 0)."""
     r2 = x * x + y * y
     cs = c[s]
     z = 0.0
-    dr = 0.0  # dz/dx = x * dr
+    dr = 0.0  # radial part: dz/dx = x * dr(r2), d2z/dx2 = dr + 2 x^2 ddr
+    ddr = 0.0  # d(dr)/d(r2)
     if cs != 0.0:
         arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
         if arg <= 0.0:
-            return 0.0, 0.0, 0.0, False
+            return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
         root = math.sqrt(arg)
         z = cs * r2 / (1.0 + root)
         dr = cs / root
+        if hess:
+            ddr = 0.5 * (1.0 + k[s]) * cs * cs * cs / (root * arg)
     za = 0.0
     da = 0.0
+    dda = 0.0
     for i in range(n_alpha[s], 0, -1):
         a = alpha[s, i - 1]
+        if hess and i >= 2:
+            dda = dda * r2 + 2.0 * i * (i - 1) * a
         da = da * r2 + 2.0 * i * a
         za = (za + a) * r2
     z += za
     dr += da
+    ddr += dda
     gx = x * dr
     gy = y * dr
+    hxx = 0.0
+    hxy = 0.0
+    hyy = 0.0
+    if hess:
+        hxx = dr + 2.0 * x * x * ddr
+        hxy = 2.0 * x * y * ddr
+        hyy = dr + 2.0 * y * y * ddr
+    # polynomial sum poly[p, q] x^p y^q: nested Horner with first (and second) derivatives
     d1 = poly.shape[1]
     pz = 0.0
     px = 0.0
     py = 0.0
+    pxx = 0.0
+    pxy = 0.0
+    pyy = 0.0
     for p in range(d1 - 1, -1, -1):
         r = 0.0
         ry = 0.0
+        ryy = 0.0
         for q in range(d1 - 1 - p, -1, -1):
+            if hess:
+                ryy = ryy * y + 2.0 * ry
             ry = ry * y + r
             r = r * y + poly[s, p, q]
+        if hess:
+            pxx = pxx * x + 2.0 * px
+            pxy = pxy * x + py
+            pyy = pyy * x + ryy
         px = px * x + pz
         pz = pz * x + r
         py = py * x + ry
     z += pz
     gx += px
     gy += py
+    hxx += pxx
+    hxy += pxy
+    hyy += pyy
     a = ripple[s, 0]
     if a != 0.0:
         w = 2.0 * math.pi / ripple[s, 1]
+        sn = math.sin(w * z)
         f = 1.0 + a * w * math.cos(w * z)
-        z += a * math.sin(w * z)
+        if hess:
+            e = a * w * w * sn
+            hxx = hxx * f - e * gx * gx
+            hxy = hxy * f - e * gx * gy
+            hyy = hyy * f - e * gy * gy
+        z += a * sn
         gx *= f
         gy *= f
-    return z, gx, gy, True
+    return z, gx, gy, hxx, hxy, hyy, True
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass):
-    """Trace one ray (lens frame) through both surfaces. Returns exit ray and status."""
+def _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
+                     dox, doy, doz, ddx, ddy, ddz):
+    """Tangent (d origin, d direction) of the ray leaving a surface, from the tangent of
+    the incoming ray (origin o, direction d; first-order forward differentiation of the
+    intersection o + t d on the sag and of the vector Snell's law at the found point)."""
+    ax = dox + t * ddx
+    ay = doy + t * ddy
+    az = doz + t * ddz
+    dt = -(az - gx * ax - gy * ay) / fp  # the intersection stays on the surface
+    px = ax + dt * dx
+    py = ay + dt * dy
+    pz = az + dt * dz
+    dgx = hxx * px + hxy * py
+    dgy = hxy * px + hyy * py
+    dinv = -inv * inv * inv * (gx * dgx + gy * dgy)
+    dnx = -dgx * inv - gx * dinv
+    dny = -dgy * inv - gy * dinv
+    dnz = dinv
+    dci = dnx * dx + dny * dy + dnz * dz + nx * ddx + ny * ddy + nz * ddz
+    dg = mu * mu * ci * dci / sk - mu * dci
+    return (px, py, pz, mu * ddx + dg * nx + g * dnx, mu * ddy + dg * ny + g * dny,
+            mu * ddz + dg * nz + g * dnz)
+
+
+@nb.njit(cache=True, fastmath=_FM)
+def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
+                uox, uoy, uoz, vox, voy, voz):
+    """Trace one ray (lens frame) through both surfaces, with the tangents of two
+    families of rays whose origins move along (uox, uoy, uoz) and (vox, voy, voz)
+    (their directions fixed). Returns the exit ray, status and the exit tangents
+    (origin, direction) of each family."""
     n_in = 1.0
+    # tangents (origin, direction) of the u and v families
+    udx = 0.0
+    udy = 0.0
+    udz = 0.0
+    vdx = 0.0
+    vdy = 0.0
+    vdz = 0.0
     for s in range(2):
         n_out = n_glass if s == 0 else 1.0
         if dz <= 0.0:
-            return ox, oy, oz, dx, dy, dz, 4
+            return ox, oy, oz, dx, dy, dz, 4, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
         t = (zv[s] - oz) / dz
         ok = False
-        gx = 0.0
-        gy = 0.0
         for _ in range(40):  # _NEWTON_MAXIT
             x = ox + t * dx
             y = oy + t * dy
-            z, gx, gy, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y)
+            z, gx, gy, _, _, _, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, False)
             if not good:
                 break
             f = oz + t * dz - zv[s] - z
@@ -183,17 +258,15 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
                 ok = True
                 break
         if not ok:
-            return ox, oy, oz, dx, dy, dz, 1
+            return ox, oy, oz, dx, dy, dz, 1, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
         x = ox + t * dx
         y = oy + t * dy
-        z, gx, gy, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y)
+        z, gx, gy, hxx, hxy, hyy, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, True)
         if not good:
-            return ox, oy, oz, dx, dy, dz, 1
+            return ox, oy, oz, dx, dy, dz, 1, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
         if x * x + y * y > ap_r * ap_r:
-            return ox, oy, oz, dx, dy, dz, 3
-        ox = x
-        oy = y
-        oz = zv[s] + z
+            return ox, oy, oz, dx, dy, dz, 3, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+        fp = dz - gx * dx - gy * dy
         # unit normal along +z side
         inv = 1.0 / math.sqrt(gx * gx + gy * gy + 1.0)
         nx = -gx * inv
@@ -203,20 +276,44 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
         ci = nx * dx + ny * dy + nz * dz
         kk = 1.0 - mu * mu * (1.0 - ci * ci)
         if kk < 0.0:
-            return ox, oy, oz, dx, dy, dz, 2
-        g = math.sqrt(kk) - mu * ci
+            return ox, oy, oz, dx, dy, dz, 2, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+        sk = math.sqrt(kk)
+        g = sk - mu * ci
+        uox, uoy, uoz, udx, udy, udz = _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz,
+                                                        mu, ci, sk, g, uox, uoy, uoz, udx, udy, udz)
+        vox, voy, voz, vdx, vdy, vdz = _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz,
+                                                        mu, ci, sk, g, vox, voy, voz, vdx, vdy, vdz)
+        ox = x
+        oy = y
+        oz = zv[s] + z
         dx = mu * dx + g * nx
         dy = mu * dy + g * ny
         dz = mu * dz + g * nz
         n_in = n_out
-    return ox, oy, oz, dx, dy, dz, 0
+    return ox, oy, oz, dx, dy, dz, 0, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+
+
+@nb.njit(cache=True, fastmath=_FM)
+def _rotate(R, x, y, z):
+    """R (x, y, z)."""
+    return (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z, R[1, 0] * x + R[1, 1] * y + R[1, 2] * z,
+            R[2, 0] * x + R[2, 1] * y + R[2, 2] * z)
+
+
+@nb.njit(cache=True, fastmath=_FM)
+def _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN):
+    """Tangent of the landing point X = p + s d (s = -p_z / N) and of the slopes (L/N, M/N)."""
+    ds = -dpz / N + pz * dN / (N * N)
+    return (dpx + ds * L + s * dL, dpy + ds * M + s * dM, (dL * N - L * dN) / (N * N), (dM * N - M * dN) / (N * N))
 
 
 @nb.njit(cache=True, fastmath=_FM)
 def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass):
     """Trace the beam ray with transverse coordinates (u, v) for one pose.
 
-    Returns sensor-plane x, y, direction L, M, N (in {S}) and status.
+    Returns sensor-plane x, y, direction L, M, N (in {S}), status, and the derivatives
+    of the landing point and slopes along u and v:
+    dx/du, dy/du, dx/dv, dy/dv, d(L/N)/du, d(M/N)/du, d(L/N)/dv, d(M/N)/dv.
     """
     # ray in {S}
     inv = 1.0 / math.sqrt(1.0 + bsx * bsx + bsy * bsy)
@@ -226,7 +323,7 @@ def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, rip
     pSx = bx + u
     pSy = by + v
     pSz = z0
-    # to {O}: p_O = R^T (p_S - t)
+    # to {O}: p_O = R^T (p_S - t); a step in u (v) moves the start along x_S (y_S): R^T e_x (R^T e_y)
     qx = pSx - t[0]
     qy = pSy - t[1]
     qz = pSz - t[2]
@@ -236,20 +333,27 @@ def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, rip
     dx = R[0, 0] * dSx + R[1, 0] * dSy + R[2, 0] * dSz
     dy = R[0, 1] * dSx + R[1, 1] * dSy + R[2, 1] * dSz
     dz = R[0, 2] * dSx + R[1, 2] * dSy + R[2, 2] * dSz
-    ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
+    (ox, oy, oz, dx, dy, dz, st, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz) = _trace_lens(
+        ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
+        R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2])
     if st != 0:
-        return 0.0, 0.0, 0.0, 0.0, 1.0, st
+        return 0.0, 0.0, 0.0, 0.0, 1.0, st, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     # back to {S}
-    px = R[0, 0] * ox + R[0, 1] * oy + R[0, 2] * oz + t[0]
-    py = R[1, 0] * ox + R[1, 1] * oy + R[1, 2] * oz + t[1]
-    pz = R[2, 0] * ox + R[2, 1] * oy + R[2, 2] * oz + t[2]
-    L = R[0, 0] * dx + R[0, 1] * dy + R[0, 2] * dz
-    M = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
-    N = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+    px, py, pz = _rotate(R, ox, oy, oz)
+    px += t[0]
+    py += t[1]
+    pz += t[2]
+    L, M, N = _rotate(R, dx, dy, dz)
     if N <= 0.0 or pz > 0.0:
-        return 0.0, 0.0, 0.0, 0.0, 1.0, 4
+        return 0.0, 0.0, 0.0, 0.0, 1.0, 4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     s = -pz / N
-    return px + s * L, py + s * M, L, M, N, 0
+    upx, upy, upz = _rotate(R, uox, uoy, uoz)
+    uL, uM, uN = _rotate(R, udx, udy, udz)
+    vpx, vpy, vpz = _rotate(R, vox, voy, voz)
+    vL, vM, vN = _rotate(R, vdx, vdy, vdz)
+    xu, yu, sxu, syu = _plane_tangent(pz, L, M, N, s, upx, upy, upz, uL, uM, uN)
+    xv, yv, sxv, syv = _plane_tangent(pz, L, M, N, s, vpx, vpy, vpz, vL, vM, vN)
+    return px + s * L, py + s * M, L, M, N, 0, xu, yu, xv, yv, sxu, syu, sxv, syv
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
@@ -259,21 +363,35 @@ def _trace_grid(uv, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ri
     for idx in nb.prange(n_p * n_r):
         p = idx // n_r
         i = idx - p * n_r
-        x, y, L, M, N, st = _trace_one(uv[i, 0], uv[i, 1], Rs[p], ts[p], z0, bx, by, bsx, bsy,
-                                       c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
-        out[p, i, 0] = x
-        out[p, i, 1] = y
-        out[p, i, 2] = L
-        out[p, i, 3] = M
-        out[p, i, 4] = N
+        x, y, L, M, N, st, xu, yu, xv, yv, sxu, syu, sxv, syv = _trace_one(
+            uv[i, 0], uv[i, 1], Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
+            n_glass)
+        o = out[p, i]
+        o[0] = x
+        o[1] = y
+        o[2] = L
+        o[3] = M
+        o[4] = N
+        o[5] = xu
+        o[6] = xv
+        o[7] = yu
+        o[8] = yv
+        o[9] = sxu
+        o[10] = sxv
+        o[11] = syu
+        o[12] = syv
         status[p, i] = st
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
 def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
-         eps, tol, maxit, out, status, counts):
+         tol, maxit, out, status, counts):
     """Newton ray aiming: find beam coordinates (u, v) whose ray lands on each target.
 
+    Each iteration traces one ray with its exact derivatives along u and v (``_trace_one``).
+    The last trace is at the returned (u, v), so its slopes and |det| are exact there: a
+    step finished from the derivatives instead (slopes + dS/d(u,v) D) would leave |det|
+    off by ~|D| relative and the irradiance weights jumping between warm starts.
     out[p, i] = (u, v, L/N, M/N, |det d(X,Y)/d(u,v)|); counts[p, i] = rays traced.
     """
     n_p = Rs.shape[0]
@@ -291,21 +409,13 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
         sy = 0.0
         det = 0.0
         for it in range(maxit):
-            x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
-            xu, yu, _, _, _, s1 = _trace_one(u + eps, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
-            xv, yv, _, _, _, s2 = _trace_one(u, v + eps, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
-            traced += 3
+            x, y, L, M, N, s0, xu, yu, xv, yv, _, _, _, _ = _trace_one(
+                u, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
+            traced += 1
             if s0 != 0:
                 st = s0
                 break
-            if s1 != 0 or s2 != 0:
-                st = s1 if s1 != 0 else s2
-                break
-            j11 = (xu - x) / eps
-            j21 = (yu - y) / eps
-            j12 = (xv - x) / eps
-            j22 = (yv - y) / eps
-            det = j11 * j22 - j12 * j21
+            det = xu * yv - xv * yu
             rx = x - X
             ry = y - Y
             sx = L / N
@@ -316,8 +426,10 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
             if det == 0.0:
                 st = 5
                 break
-            u -= (j22 * rx - j12 * ry) / det
-            v -= (-j21 * rx + j11 * ry) / det
+            du = -(yv * rx - xv * ry) / det
+            dv = -(-yu * rx + xu * ry) / det
+            u += du
+            v += dv
         out[p, i, 0] = u
         out[p, i, 1] = v
         out[p, i, 2] = sx
@@ -334,12 +446,15 @@ class TraceResult:
     """Rays at the sensor plane for P poses and N rays.
 
     xy: (P, N, 2) positions in {S} (mm); direction: (P, N, 3) unit vectors (L, M, N);
-    status: (P, N) codes (0 = OK).
+    status: (P, N) codes (0 = OK); derivatives: (P, N, 4, 2) the exact Jacobian
+    d(x, y, L/N, M/N) / d(u, v) of the beam-to-sensor map (rows x, y in mm/mm, slopes
+    in rad/mm; zero where status is not OK).
     """
 
     xy: np.ndarray
     direction: np.ndarray
     status: np.ndarray
+    derivatives: np.ndarray
 
     @property
     def slopes(self) -> np.ndarray:
@@ -365,27 +480,29 @@ def _kernel_args(kern: LensKernel):
 
 def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None) -> TraceResult:
     """Trace beam rays with transverse coordinates uv (N, 2) (mm, relative to the beam
-    centre) through the lens at each pose (P, 6) to the sensor plane.
+    centre) through the lens at each pose (P, 6) to the sensor plane, with the
+    derivatives of where they land and of their slopes along u and v.
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
     uv = _arr(np.atleast_2d(uv))
-    out = np.empty((Rs.shape[0], uv.shape[0], 5))
+    out = np.empty((Rs.shape[0], uv.shape[0], 13))
     status = np.empty((Rs.shape[0], uv.shape[0]), dtype=np.int8)
     with compile_notice():
         _trace_grid(uv, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), out, status)
-    return TraceResult(out[..., :2], out[..., 2:], status)
+    return TraceResult(out[..., :2], out[..., 2:5], status, out[..., 5:].reshape(out.shape[:2] + (4, 2)))
 
 
 def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKernel | None = None,
-             eps: float = 1e-6, tol: float = 1e-12, maxit: int = 30):
+             tol: float = 1e-12, maxit: int = 30):
     """Aim one beam ray onto each target point (lenslet centre) of the sensor plane.
 
     Returns (uv, slopes, jac_det, status, n_traced): beam coordinates (P, T, 2) of
     the aimed rays, their slopes (L/N, M/N) at the targets (P, T, 2), the local
     |det d(X, Y)/d(u, v)| of the beam-to-sensor map (P, T) (irradiance at the
-    sensor = input irradiance / det), status (P, T) and the number of rays traced.
-    ``u0`` (P, T, 2) warm-starts the Newton iteration (default: the targets).
+    sensor = input irradiance / det), status (P, T) and the number of rays traced
+    (each with its derivatives along u and v). ``u0`` (P, T, 2) warm-starts the Newton
+    iteration (default: the targets); tol: landing tolerance (mm) per axis.
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
@@ -398,6 +515,6 @@ def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKern
     status = np.empty((n_p, n_t), dtype=np.int8)
     counts = np.empty((n_p, n_t), dtype=np.int64)
     with compile_notice():
-        _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), float(eps), float(tol), int(maxit),
+        _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), float(tol), int(maxit),
              out, status, counts)
     return out[..., :2], out[..., 2:4], out[..., 4], status, int(counts.sum())

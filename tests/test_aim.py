@@ -1,0 +1,81 @@
+"""Ray aiming and the beam-to-sensor map's derivatives, against finite differences of
+the plain trace.
+
+The aim (``trace.aim_rays``) takes Newton steps with the exact derivatives the trace
+carries along u and v (forward differentiation through both refractions, the sag's
+Hessian included). Both are checked here on a lens that uses every part of the sag:
+conic, aspheric terms, polynomial freeform terms and layer ripple.
+"""
+
+import numpy as np
+import pytest
+
+import lensforge as lf
+from lensforge.optics.materials import Material
+from lensforge.optics.surfaces import Freeform
+from lensforge.optics.trace import OK, aim_rays, lens_kernel, trace_rays
+
+
+def _every_term_lens():
+    poly_f = np.zeros((4, 4))
+    poly_f[1, 0], poly_f[0, 2], poly_f[2, 1], poly_f[0, 3] = 0.01, 0.004, -0.0015, 0.0008
+    poly_b = np.zeros((4, 4))
+    poly_b[0, 1], poly_b[2, 0], poly_b[1, 1], poly_b[3, 0] = -0.008, 0.003, 0.002, -0.0006
+    front = Freeform(curvature=1 / 40, conic=-0.6, aspheric=(2e-4, -3e-6), poly=poly_f,
+                     ripple_amplitude=2e-4, ripple_period=0.05)
+    back = Freeform(curvature=-1 / 60, conic=0.4, aspheric=(-1e-4,), poly=poly_b)
+    return lf.Lens(front=front, back=back, thickness=4.0, aperture=12.0, material=Material.constant(1.51))
+
+
+POSES = np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                  [0.4, -0.3, 0.5, 0.02, -0.03, 0.1]])
+
+
+@pytest.fixture(scope="module")
+def case():
+    bench = lf.Bench.default()
+    lens = _every_term_lens()
+    g = np.linspace(-1.2, 1.2, 7)
+    uv = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    return bench, lens, uv
+
+
+def test_trace_derivatives_match_finite_differences(case):
+    bench, lens, uv = case
+    res = trace_rays(bench, lens, POSES, uv)
+    assert np.all(res.status == OK)
+    values = lambda r: np.concatenate([r.xy, r.slopes], axis=-1)  # (P, N, 4): x, y, L/N, M/N
+    for col, e in enumerate(np.eye(2)):
+        fd = {}
+        for h in (2e-5, 1e-5):  # central differences at two steps: their gap bounds the FD error
+            fd[h] = (values(trace_rays(bench, lens, POSES, uv + h * e))
+                     - values(trace_rays(bench, lens, POSES, uv - h * e))) / (2 * h)
+        est = np.abs(fd[2e-5] - fd[1e-5])  # ~ 3x the error of the h = 1e-5 difference
+        scale = np.abs(fd[1e-5]).max(axis=(0, 1))  # per row: mm/mm, rad/mm
+        err = np.abs(res.derivatives[..., col] - fd[1e-5])
+        # the analytic derivative sits within the FD error (plus rounding of the 1e-5 difference)
+        assert np.all(err <= est + 1e-9 * scale), (col, float((err - est).max()))
+    # and the rows are not trivially zero: the lens bends and magnifies the beam
+    assert np.abs(res.derivatives[..., 2:, :]).max() > 1e-3
+
+
+def test_aimed_rays_land_on_their_targets_with_the_trace_slopes(case):
+    bench, lens, uv = case
+    kern = lens_kernel(lens, bench.laser.wavelength_nm)
+    targets = trace_rays(bench, lens, POSES[:1], uv).xy[0]  # points a ray reaches at nominal
+    cold = aim_rays(bench, lens, POSES, targets, kernel=kern)
+    # warm starts from the rays aimed at a pose one difference step away (as the Jacobians do)
+    shifted = POSES + np.array([1e-3, 0, 0, 0, 1e-4, 0])
+    warm = aim_rays(bench, lens, shifted, targets, u0=cold[0], kernel=kern)
+    for poses, (uv_a, slopes, det, status, n) in ((POSES, cold), (shifted, warm)):
+        assert np.all(status == OK)
+        check = trace_rays(bench, lens, poses[:1], uv_a[0]), trace_rays(bench, lens, poses[1:], uv_a[1])
+        for p, tr in enumerate(check):
+            np.testing.assert_allclose(tr.xy[0], targets, rtol=0, atol=1e-11)
+            np.testing.assert_allclose(slopes[p], tr.slopes[0], rtol=0, atol=1e-13)
+            J = tr.derivatives[0, :, :2, :]
+            np.testing.assert_allclose(det[p], np.abs(np.linalg.det(J)), rtol=1e-12)
+    # exact derivatives converge quadratically: a start one difference step away (landing
+    # ~1e-3 mm off) needs three traces per target (1e-3 -> 1e-7 -> 1e-14 mm), a cold one five
+    assert warm[4] <= 3 * targets.shape[0] * len(POSES)
+    assert cold[4] <= 5 * targets.shape[0] * len(POSES)
