@@ -32,11 +32,11 @@ import numpy as np
 from .bench import Bench
 from .jit import compile_notice
 from .lens import Lens
-from .pose import rotations
+from .pose import right_jacobian_so3, rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
-    "LensKernel", "lens_kernel", "pose_frames", "trace_rays", "aim_rays", "TraceResult",
+    "LensKernel", "lens_kernel", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "TraceResult",
 ]
 
 OK, MISSED, TIR, CLIPPED, BACKWARD, NOT_AIMED = 0, 1, 2, 3, 4, 5
@@ -222,24 +222,17 @@ def _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, 
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
-                uox, uoy, uoz, vox, voy, voz):
-    """Trace one ray (lens frame) through both surfaces, with the tangents of two
-    families of rays whose origins move along (uox, uoy, uoz) and (vox, voy, voz)
-    (their directions fixed). Returns the exit ray, status and the exit tangents
-    (origin, direction) of each family."""
+def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan):
+    """Trace one ray (lens frame) through both surfaces. Returns the exit ray and status.
+
+    tan (m, 6): tangents (d origin, d direction) of the entering ray along m directions,
+    replaced in place by those of the exit ray (meaningful when the status is OK).
+    """
     n_in = 1.0
-    # tangents (origin, direction) of the u and v families
-    udx = 0.0
-    udy = 0.0
-    udz = 0.0
-    vdx = 0.0
-    vdy = 0.0
-    vdz = 0.0
     for s in range(2):
         n_out = n_glass if s == 0 else 1.0
         if dz <= 0.0:
-            return ox, oy, oz, dx, dy, dz, 4, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+            return ox, oy, oz, dx, dy, dz, 4
         t = (zv[s] - oz) / dz
         ok = False
         for _ in range(40):  # _NEWTON_MAXIT
@@ -258,14 +251,14 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
                 ok = True
                 break
         if not ok:
-            return ox, oy, oz, dx, dy, dz, 1, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+            return ox, oy, oz, dx, dy, dz, 1
         x = ox + t * dx
         y = oy + t * dy
         z, gx, gy, hxx, hxy, hyy, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, True)
         if not good:
-            return ox, oy, oz, dx, dy, dz, 1, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+            return ox, oy, oz, dx, dy, dz, 1
         if x * x + y * y > ap_r * ap_r:
-            return ox, oy, oz, dx, dy, dz, 3, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+            return ox, oy, oz, dx, dy, dz, 3
         fp = dz - gx * dx - gy * dy
         # unit normal along +z side
         inv = 1.0 / math.sqrt(gx * gx + gy * gy + 1.0)
@@ -276,13 +269,13 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
         ci = nx * dx + ny * dy + nz * dz
         kk = 1.0 - mu * mu * (1.0 - ci * ci)
         if kk < 0.0:
-            return ox, oy, oz, dx, dy, dz, 2, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+            return ox, oy, oz, dx, dy, dz, 2
         sk = math.sqrt(kk)
         g = sk - mu * ci
-        uox, uoy, uoz, udx, udy, udz = _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz,
-                                                        mu, ci, sk, g, uox, uoy, uoz, udx, udy, udz)
-        vox, voy, voz, vdx, vdy, vdz = _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz,
-                                                        mu, ci, sk, g, vox, voy, voz, vdx, vdy, vdz)
+        for j in range(tan.shape[0]):
+            (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
+                t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
+                tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5])
         ox = x
         oy = y
         oz = zv[s] + z
@@ -290,7 +283,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
         dy = mu * dy + g * ny
         dz = mu * dz + g * nz
         n_in = n_out
-    return ox, oy, oz, dx, dy, dz, 0, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz
+    return ox, oy, oz, dx, dy, dz, 0
 
 
 @nb.njit(cache=True, fastmath=_FM)
@@ -301,6 +294,13 @@ def _rotate(R, x, y, z):
 
 
 @nb.njit(cache=True, fastmath=_FM)
+def _rotate_t(R, x, y, z):
+    """R^T (x, y, z)."""
+    return (R[0, 0] * x + R[1, 0] * y + R[2, 0] * z, R[0, 1] * x + R[1, 1] * y + R[2, 1] * z,
+            R[0, 2] * x + R[1, 2] * y + R[2, 2] * z)
+
+
+@nb.njit(cache=True, fastmath=_FM)
 def _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN):
     """Tangent of the landing point X = p + s d (s = -p_z / N) and of the slopes (L/N, M/N)."""
     ds = -dpz / N + pz * dN / (N * N)
@@ -308,36 +308,45 @@ def _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN):
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass):
-    """Trace the beam ray with transverse coordinates (u, v) for one pose.
+def _trace_one(u, v, R, t, dT, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, dout):
+    """Trace the beam ray with transverse coordinates (u, v) for one pose (R, t).
 
-    Returns sensor-plane x, y, direction L, M, N (in {S}), status, and the derivatives
-    of the landing point and slopes along u and v:
-    dx/du, dy/du, dx/dv, dy/dv, d(L/N)/du, d(M/N)/du, d(L/N)/dv, d(M/N)/dv.
+    Returns sensor-plane x, y, direction L, M, N (in {S}) and status. dT (m, 3, 4): the
+    derivatives of [R | t] along m pose directions; tan (2 + m, 6): scratch; dout
+    (2 + m, 4) receives d(x, y, L/N, M/N) along u, v and each pose direction (the beam
+    ray fixed in {S}).
     """
     # ray in {S}
     inv = 1.0 / math.sqrt(1.0 + bsx * bsx + bsy * bsy)
     dSx = bsx * inv
     dSy = bsy * inv
     dSz = inv
-    pSx = bx + u
-    pSy = by + v
-    pSz = z0
-    # to {O}: p_O = R^T (p_S - t); a step in u (v) moves the start along x_S (y_S): R^T e_x (R^T e_y)
-    qx = pSx - t[0]
-    qy = pSy - t[1]
-    qz = pSz - t[2]
-    ox = R[0, 0] * qx + R[1, 0] * qy + R[2, 0] * qz
-    oy = R[0, 1] * qx + R[1, 1] * qy + R[2, 1] * qz
-    oz = R[0, 2] * qx + R[1, 2] * qy + R[2, 2] * qz
-    dx = R[0, 0] * dSx + R[1, 0] * dSy + R[2, 0] * dSz
-    dy = R[0, 1] * dSx + R[1, 1] * dSy + R[2, 1] * dSz
-    dz = R[0, 2] * dSx + R[1, 2] * dSy + R[2, 2] * dSz
-    (ox, oy, oz, dx, dy, dz, st, uox, uoy, uoz, udx, udy, udz, vox, voy, voz, vdx, vdy, vdz) = _trace_lens(
-        ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
-        R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2])
+    # to {O}: p_O = R^T (p_S - t), d_O = R^T d_S
+    qx = bx + u - t[0]
+    qy = by + v - t[1]
+    qz = z0 - t[2]
+    ox, oy, oz = _rotate_t(R, qx, qy, qz)
+    dx, dy, dz = _rotate_t(R, dSx, dSy, dSz)
+    # tangents at the start: a step in u (v) moves the start along x_S (y_S); a pose direction
+    # (dR, dt) moves it by dR^T (p_S - t) - R^T dt and turns the direction by dR^T d_S
+    for j in range(tan.shape[0]):
+        if j < 2:
+            tan[j, 0], tan[j, 1], tan[j, 2] = R[j, 0], R[j, 1], R[j, 2]
+            tan[j, 3] = 0.0
+            tan[j, 4] = 0.0
+            tan[j, 5] = 0.0
+        else:
+            D = dT[j - 2]
+            a0, a1, a2 = _rotate_t(D, qx, qy, qz)
+            b0, b1, b2 = _rotate_t(R, D[0, 3], D[1, 3], D[2, 3])
+            tan[j, 0] = a0 - b0
+            tan[j, 1] = a1 - b1
+            tan[j, 2] = a2 - b2
+            tan[j, 3], tan[j, 4], tan[j, 5] = _rotate_t(D, dSx, dSy, dSz)
+    ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
+                                             n_glass, tan)
     if st != 0:
-        return 0.0, 0.0, 0.0, 0.0, 1.0, st, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0, 0.0, 1.0, st
     # back to {S}
     px, py, pz = _rotate(R, ox, oy, oz)
     px += t[0]
@@ -345,41 +354,46 @@ def _trace_one(u, v, R, t, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, rip
     pz += t[2]
     L, M, N = _rotate(R, dx, dy, dz)
     if N <= 0.0 or pz > 0.0:
-        return 0.0, 0.0, 0.0, 0.0, 1.0, 4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        return 0.0, 0.0, 0.0, 0.0, 1.0, 4
     s = -pz / N
-    upx, upy, upz = _rotate(R, uox, uoy, uoz)
-    uL, uM, uN = _rotate(R, udx, udy, udz)
-    vpx, vpy, vpz = _rotate(R, vox, voy, voz)
-    vL, vM, vN = _rotate(R, vdx, vdy, vdz)
-    xu, yu, sxu, syu = _plane_tangent(pz, L, M, N, s, upx, upy, upz, uL, uM, uN)
-    xv, yv, sxv, syv = _plane_tangent(pz, L, M, N, s, vpx, vpy, vpz, vL, vM, vN)
-    return px + s * L, py + s * M, L, M, N, 0, xu, yu, xv, yv, sxu, syu, sxv, syv
+    for j in range(tan.shape[0]):
+        dpx, dpy, dpz = _rotate(R, tan[j, 0], tan[j, 1], tan[j, 2])
+        dL, dM, dN = _rotate(R, tan[j, 3], tan[j, 4], tan[j, 5])
+        if j >= 2:  # the pose moves the exit ray too: dR o + dt, dR d
+            D = dT[j - 2]
+            a0, a1, a2 = _rotate(D, ox, oy, oz)
+            dpx += a0 + D[0, 3]
+            dpy += a1 + D[1, 3]
+            dpz += a2 + D[2, 3]
+            a0, a1, a2 = _rotate(D, dx, dy, dz)
+            dL += a0
+            dM += a1
+            dN += a2
+        dout[j, 0], dout[j, 1], dout[j, 2], dout[j, 3] = _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN)
+    return px + s * L, py + s * M, L, M, N, 0
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
-def _trace_grid(uv, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, out, status):
+def _trace_grid(uv, Rs, ts, dTs, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
+                out, deriv, status):
+    """Trace rays uv (P, N, 2) at P poses; deriv (P, N, 2 + m, 4) receives d(x, y, L/N, M/N)
+    along u, v and the m pose directions dTs (P, m, 3, 4)."""
     n_p = Rs.shape[0]
-    n_r = uv.shape[0]
+    n_r = uv.shape[1]
+    m = 2 + dTs.shape[1]
     for idx in nb.prange(n_p * n_r):
         p = idx // n_r
         i = idx - p * n_r
-        x, y, L, M, N, st, xu, yu, xv, yv, sxu, syu, sxv, syv = _trace_one(
-            uv[i, 0], uv[i, 1], Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
-            n_glass)
-        o = out[p, i]
-        o[0] = x
-        o[1] = y
-        o[2] = L
-        o[3] = M
-        o[4] = N
-        o[5] = xu
-        o[6] = xv
-        o[7] = yu
-        o[8] = yv
-        o[9] = sxu
-        o[10] = sxv
-        o[11] = syu
-        o[12] = syv
+        tan = np.empty((m, 6))
+        x, y, L, M, N, st = _trace_one(uv[p, i, 0], uv[p, i, 1], Rs[p], ts[p], dTs[p], z0, bx, by, bsx, bsy,
+                                       c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, deriv[p, i])
+        out[p, i, 0] = x
+        out[p, i, 1] = y
+        out[p, i, 2] = L
+        out[p, i, 3] = M
+        out[p, i, 4] = N
+        if st != 0:
+            deriv[p, i, :, :] = 0.0
         status[p, i] = st
 
 
@@ -389,13 +403,17 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
     """Newton ray aiming: find beam coordinates (u, v) whose ray lands on each target.
 
     Each iteration traces one ray with its exact derivatives along u and v (``_trace_one``).
-    The last trace is at the returned (u, v), so its slopes and |det| are exact there: a
-    step finished from the derivatives instead (slopes + dS/d(u,v) D) would leave |det|
-    off by ~|D| relative and the irradiance weights jumping between warm starts.
+    Once the ray lands within ``tol`` (per axis) the last Newton step D is taken without
+    tracing again: the slopes move by their derivatives times D (exact to second order,
+    ~|D|^2), the landing error falls to ~|D|^2, and |det| keeps its value at the traced
+    ray (off by ~|D| relative). With tol = 1e-10 mm both are far below rounding of the
+    Zernike fit (z from two warm starts agree to ~1e-8 sigma); a looser tol would let
+    |det| jump with the warm start.
     out[p, i] = (u, v, L/N, M/N, |det d(X,Y)/d(u,v)|); counts[p, i] = rays traced.
     """
     n_p = Rs.shape[0]
     n_t = targets.shape[0]
+    no_pose = np.zeros((0, 3, 4))
     for idx in nb.prange(n_p * n_t):
         p = idx // n_t
         i = idx - p * n_t
@@ -408,21 +426,21 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
         sx = 0.0
         sy = 0.0
         det = 0.0
+        tan = np.empty((2, 6))
+        d = np.empty((2, 4))
         for it in range(maxit):
-            x, y, L, M, N, s0, xu, yu, xv, yv, _, _, _, _ = _trace_one(
-                u, v, Rs[p], ts[p], z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass)
+            x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
+                                           poly, ripple, zv, ap_r, n_glass, tan, d)
             traced += 1
             if s0 != 0:
                 st = s0
                 break
+            xu, yu, xv, yv = d[0, 0], d[0, 1], d[1, 0], d[1, 1]
             det = xu * yv - xv * yu
             rx = x - X
             ry = y - Y
             sx = L / N
             sy = M / N
-            if abs(rx) < tol and abs(ry) < tol:
-                st = 0
-                break
             if det == 0.0:
                 st = 5
                 break
@@ -430,6 +448,11 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
             dv = -(-yu * rx + xu * ry) / det
             u += du
             v += dv
+            if abs(rx) < tol and abs(ry) < tol:
+                sx += d[0, 2] * du + d[1, 2] * dv
+                sy += d[0, 3] * du + d[1, 3] * dv
+                st = 0
+                break
         out[p, i, 0] = u
         out[p, i, 1] = v
         out[p, i, 2] = sx
@@ -448,13 +471,16 @@ class TraceResult:
     xy: (P, N, 2) positions in {S} (mm); direction: (P, N, 3) unit vectors (L, M, N);
     status: (P, N) codes (0 = OK); derivatives: (P, N, 4, 2) the exact Jacobian
     d(x, y, L/N, M/N) / d(u, v) of the beam-to-sensor map (rows x, y in mm/mm, slopes
-    in rad/mm; zero where status is not OK).
+    in rad/mm); pose_derivatives: (P, N, 4, 6) d(x, y, L/N, M/N) / d(pose) with the
+    beam ray fixed (per mm of tx, ty, tz and per rad of rx, ry, rz; DESIGN's pose
+    vector), when asked for, else None. Derivatives are zero where status is not OK.
     """
 
     xy: np.ndarray
     direction: np.ndarray
     status: np.ndarray
     derivatives: np.ndarray
+    pose_derivatives: np.ndarray | None = None
 
     @property
     def slopes(self) -> np.ndarray:
@@ -464,6 +490,18 @@ class TraceResult:
     @property
     def ok(self) -> np.ndarray:
         return self.status == OK
+
+
+def pose_frame_derivatives(poses) -> np.ndarray:
+    """(P, 6, 3, 4): derivatives of [R | t] of T_SO along the six pose-vector components
+    (translation: dt = e_j; rotation: dR = R [J_r(r) e_j]x, J_r the right Jacobian of SO(3))."""
+    poses = np.atleast_2d(np.asarray(poses, dtype=float))
+    R = rotations(poses[:, 3:])
+    dT = np.zeros((len(poses), 6, 3, 4))
+    dT[:, :3, :, 3] = np.eye(3)
+    for p, r in enumerate(poses[:, 3:]):
+        dT[p, 3:, :, :3] = R[p] @ skew(right_jacobian_so3(r).T)
+    return dT
 
 
 def _beam_args(bench: Bench, lens: Lens):
@@ -478,23 +516,31 @@ def _kernel_args(kern: LensKernel):
             _arr(kern.ripple), _arr(kern.zv), float(kern.ap_r), float(kern.n))
 
 
-def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None) -> TraceResult:
-    """Trace beam rays with transverse coordinates uv (N, 2) (mm, relative to the beam
-    centre) through the lens at each pose (P, 6) to the sensor plane, with the
-    derivatives of where they land and of their slopes along u and v.
+def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None,
+               pose_derivatives: bool = False) -> TraceResult:
+    """Trace beam rays with transverse coordinates uv (mm, relative to the beam centre;
+    (N, 2) for every pose, or (P, N, 2) per pose) through the lens at each pose (P, 6)
+    to the sensor plane, with the derivatives of where they land and of their slopes
+    along u and v, and along the pose when ``pose_derivatives``.
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
-    uv = _arr(np.atleast_2d(uv))
-    out = np.empty((Rs.shape[0], uv.shape[0], 13))
-    status = np.empty((Rs.shape[0], uv.shape[0]), dtype=np.int8)
+    n_p = Rs.shape[0]
+    uv = np.asarray(uv, dtype=float)
+    uv = _arr(np.broadcast_to(uv if uv.ndim == 3 else np.atleast_2d(uv), (n_p,) + np.atleast_2d(uv).shape[-2:]))
+    dT = _arr(pose_frame_derivatives(poses) if pose_derivatives else np.zeros((n_p, 0, 3, 4)))
+    m = 2 + dT.shape[1]
+    out = np.empty((n_p, uv.shape[1], 5))
+    deriv = np.empty((n_p, uv.shape[1], m, 4))
+    status = np.empty((n_p, uv.shape[1]), dtype=np.int8)
     with compile_notice():
-        _trace_grid(uv, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), out, status)
-    return TraceResult(out[..., :2], out[..., 2:5], status, out[..., 5:].reshape(out.shape[:2] + (4, 2)))
+        _trace_grid(uv, Rs, ts, dT, *_beam_args(bench, lens), *_kernel_args(kern), out, deriv, status)
+    d = np.swapaxes(deriv, -1, -2)  # (P, N, 4, m)
+    return TraceResult(out[..., :2], out[..., 2:5], status, d[..., :2], d[..., 2:] if pose_derivatives else None)
 
 
 def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKernel | None = None,
-             tol: float = 1e-12, maxit: int = 30):
+             tol: float = 1e-10, maxit: int = 30):
     """Aim one beam ray onto each target point (lenslet centre) of the sensor plane.
 
     Returns (uv, slopes, jac_det, status, n_traced): beam coordinates (P, T, 2) of
