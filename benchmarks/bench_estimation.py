@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_estimation.py [--n 40] [--quick] [--out exports/bench_estimation]
 
-1. Per lens and estimator (lm central / lm forward Jacobian / ukf x12): wall time
+1. Per lens and estimator (lm / ukf x12): wall time
    per estimate (median over --n noisy estimates from grasp-error starts, one
    thread of work after a warm-up), Jacobian evaluations, poses traced.
 2. One simulated calibration run (12 convergence + 12 calibration poses, ml
@@ -33,7 +33,6 @@ from lensforge.verification.scenario import ScenarioConfig, plan_poses, run_cali
 LENSES = ("spherical", "polynomial", "extended_polynomial", "zernike")
 VARIANTS = {
     "lm": {"method": "lm"},
-    "lm-forward": {"method": "lm", "jac": "forward"},
     "ukf-12": {"method": "ukf", "ukf_repeats": 12, "prior_cov": prior_covariance()},
 }
 

@@ -210,7 +210,8 @@ def test_reused_jacobians_reach_the_same_minimum(setup, param):
     """The solver reuses its Jacobians across iterations; relinearising at every step
     instead gives the same estimate (within 0.05 of its 1-sigma: both stop when the
     remaining step is below 0.01 sigma) and the same covariance (rel 1e-3: both take
-    fresh central Jacobians at the estimate)."""
+    fresh Jacobians at the estimate). Which is cheaper depends on theta's size
+    (benchmarks/bench_joint.py)."""
     bench, _, scene, plan = setup
     A_cmd = flange_pose(scene, plan, check_reach=False)
     rng = np.random.default_rng(21)
@@ -228,7 +229,6 @@ def test_reused_jacobians_reach_the_same_minimum(setup, param):
     assert np.max(np.abs(d) / sd) < 0.05
     np.testing.assert_allclose(np.sqrt(np.diag(fast.cov)), sd, rtol=1e-3)
     assert abs(fast.chi2 - full.chi2) < 0.01 * np.sqrt(2 * full.dof)
-    assert fast.n_traced < full.n_traced
 
 
 def test_study_takes_a_pose_plan(tmp_path):

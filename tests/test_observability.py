@@ -15,7 +15,7 @@ from lensforge.calibration.handeye import solve_handeye
 from lensforge.calibration.pose_estimation import WeakObservabilityWarning, estimate_pose_model
 from lensforge.calibration.robot import RobotNoise, paper_scene, random_lens_poses, simulate_calibration
 from lensforge.design.design_file import load_design
-from lensforge.optics.sensitivity import jacobian, metrics, observability
+from lensforge.optics.sensitivity import difference_jacobian, jacobian, metrics, observability
 from lensforge.optics.shack_hartmann import ForwardModel
 
 DEMO = Path(__file__).parent / "data" / "demo-zernike.json"  # `lensforge demo`'s design (CMA-ES, A, seed 0, 800 evals)
@@ -65,8 +65,22 @@ def test_batched_jacobian_matches_per_pose(bench):
     for p in range(2):
         Jp = jacobian(model, x[p:p + 1])[0][0]
         assert np.allclose(J[p], Jp, rtol=1e-9, atol=1e-12 * np.abs(Jp).max())
-    Jf = jacobian(model, x, central=False)[0]
-    assert np.allclose(Jf, J, rtol=0.05, atol=0.05 * np.abs(J).max())  # forward vs central: O(h)
+
+
+@pytest.mark.parametrize("name", ["polynomial", "extended_polynomial", "zernike", "spherical"])
+def test_exact_jacobian_matches_central_differences_of_the_model(bench, name):
+    # central differences of the model at two steps: their gap (~3x the error of the smaller)
+    # bounds the difference error; the exact Jacobian must sit within it
+    model = ForwardModel(bench, lf.paper_lens(name))
+    x = np.array([[0.0] * 6, [0.3, -0.2, 0.4, 0.004, -0.006, 0.05]])
+    J, complete, _ = jacobian(model, x)
+    assert complete.all()
+    W = lambda A: np.einsum("ij,pjk->pik", model.whitener, A)  # whitened: 1/sigma per unit
+    fd1, fd2 = W(difference_jacobian(model, x)), W(difference_jacobian(model, x, scale=2.0))
+    col = np.linalg.norm(W(J), axis=1)  # (P, 6)
+    est = np.linalg.norm(fd2 - fd1, axis=1)
+    err = np.linalg.norm(W(J) - fd1, axis=1)
+    assert np.all(err <= est + 1e-7 * col), (name, err / col, est / col)
 
 
 def test_pose_estimation_warns_weak_rz_and_still_solves(bench):

@@ -22,7 +22,7 @@ from lensforge.verification.scenario import (
     scenario_scene,
 )
 
-FAST = ScenarioConfig(n_convergence=4, jac="forward")
+FAST = ScenarioConfig(n_convergence=4)
 
 
 @pytest.fixture(scope="module")

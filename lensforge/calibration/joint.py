@@ -26,18 +26,17 @@ Solver: Levenberg-Marquardt on the block-arrow normal equations, started from a
 two-stage solution (per-pose estimates + hand-eye) and theta = 0, all unknowns free
 from the first step (theta steps capped at 3 prior sigmas; holding theta for a first
 step moved the poses onto the nominal lens's biased fit, from which theta wandered to
-10-26 prior sigmas before coming back: 2-4x more traces to the same minimum). Jacobians: dh/dx by finite differences
-(one batched trace of 6 n or 12 n poses), chained analytically to (X, Z, a_i);
+10-26 prior sigmas before coming back: 2-4x more traces to the same minimum). Jacobians:
+dh/dx exact (``optics.sensitivity.jacobian``), chained analytically to (X, Z, a_i);
 dh/dtheta by forward differences of the lens (one model per direction; the study
-passes the parameterisation's own at the plan as the start). They cost ~95 % of the
+passes the parameterisation's own at the plan as the start). They cost most of the
 time, so the iterations reuse them (inexact Gauss-Newton with exact residuals) and
 relinearise only when a step fails to shrink the Gauss-Newton decrement by 4x. With
-non-zero residuals r the fixed point of inexact Jacobians J + dJ is off the minimum
-by (J^T J)^-1 dJ^T r (measured: up to 0.15 sigma with forward pose differences), so
-convergence is always confirmed with fresh central pose and theta Jacobians: the
-estimate is where the remaining step with those is below ``tol`` (1e-2) sigma, and
-the covariance uses them (computed within 0.3 sigma of the estimate; their change
-over that is far below their difference error).
+non-zero residuals r the fixed point of Jacobians J + dJ taken at another state is
+off the minimum by (J^T J)^-1 dJ^T r, so convergence is always confirmed with pose
+and theta Jacobians at the estimate: it is where the remaining step with those is
+below ``tol`` (1e-2) sigma, and the covariance uses them (taken within 0.3 sigma of
+the estimate, over which they change by far less than the theta differences' error).
 
 Uncertainty: the covariance of (xi_X, xi_Z, theta) is the inverse of the Schur
 complement of the joint information (priors included) at the estimate, i.e. the joint
@@ -56,7 +55,7 @@ from scipy.special import chdtrc
 
 from ..errors import CalibrationError
 from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, rotations
-from ..optics.sensitivity import jacobian
+from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
 from .lens_params import LensParameterisation
 
@@ -71,7 +70,7 @@ _STEP_TOL = 1e-2
 _NUMERIC_FLOOR = 1e-9  # whitened misfit per dof treated as zero (a remaining step below ~3e-7 sigma)
 # largest theta step per iteration (prior sigmas): the start's pose error must not be absorbed by theta
 _THETA_TRUST = 3.0
-# a step shorter than this (1-sigma units) keeps central Jacobians fresh for the covariance
+# a step shorter than this (1-sigma units) keeps the Jacobians fresh for the covariance
 _FRESH_STEP = 0.3
 
 
@@ -218,11 +217,10 @@ class JointProblem:
         c = float(np.sum(r * r)) + float(np.sum((a @ self.WA.T) ** 2))
         return c + (float(theta @ theta) if self.theta_prior else 0.0)
 
-    def pose_jacobian(self, theta, x, uv, z0, central: bool = True):
-        """Whitened dh/dx (n, m, 6): the optics' one batched finite-difference Jacobian
-        (central: 12 traces per pose; else forward, 6)."""
-        J, _, _ = jacobian(self.model(theta), x, uv=uv, z0=z0, central=central)
-        self.n_traced += (12 if central else 6) * self.n
+    def pose_jacobian(self, theta, x, uv):
+        """Whitened dh/dx (n, m, 6): the optics' exact Jacobian, rays warm-started from uv."""
+        J, _, _ = jacobian(self.model(theta), x, uv=uv)
+        self.n_traced += JACOBIAN_EVALS * self.n
         return np.einsum("ij,njp->nip", self.Li, J)
 
     def theta_jacobian(self, theta, x, z0, uv):
@@ -307,9 +305,10 @@ def _inv(S):
     return 0.5 * (C + C.T)
 
 
-def _linearise(pb, theta, x, uv, zm, central: bool):
-    """(S, Jt, central) at the state: pose Jacobian (central or forward) and theta Jacobian."""
-    return pb.pose_jacobian(theta, x, uv, zm, central=central), pb.theta_jacobian(theta, x, zm, uv), central
+def _linearise(pb, theta, x, uv, zm):
+    """(S, Jt, True) at the state: pose and theta Jacobians (the covariance's when the state
+    is the estimate)."""
+    return pb.pose_jacobian(theta, x, uv), pb.theta_jacobian(theta, x, zm, uv), True
 
 
 def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
@@ -358,13 +357,12 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     a = np.zeros((n, 6))
     r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a)
     cost = pb.cost(r, a, theta)
-    # Iteration Jacobians (inexact Gauss-Newton): forward differences, kept while the
-    # steps contract; the residuals are exact, so the fixed point is the exact minimiser.
-    S = pb.pose_jacobian(theta, x, uv, zm, central=False)
+    # Iteration Jacobians (inexact Gauss-Newton): kept while the steps contract; the
+    # residuals are exact, so the fixed point is the exact minimiser once they are fresh.
+    S = pb.pose_jacobian(theta, x, uv)
     Jt = (np.asarray(theta_jacobian0, float)[used] if theta_jacobian0 is not None
           else pb.theta_jacobian(theta, x, zm, uv))
-    fresh = False  # S, Jt are the covariance's: central, at the current state (or within 0.1 sigma)
-    endgame = False  # near the minimum: every relinearisation is central
+    fresh = theta_jacobian0 is None  # S, Jt are the covariance's: at the current state (or within 0.3 sigma)
     dof = n * pb.m - 12 - (0 if theta_prior else k)
     lam = 1e-6
     converged = False
@@ -387,9 +385,9 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 converged = True
                 break
             # the iteration Jacobians' fixed point is off the minimum by (J^T J)^-1 dJ^T r
-            # when the residuals r are not zero: finish with fresh central ones
-            S, Jt, fresh = _linearise(pb, theta, x, uv, zm, central=True)
-            endgame, prev_dec = True, np.inf
+            # when the residuals r are not zero: finish with fresh ones
+            S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+            prev_dec = np.inf
             continue
         accepted = False
         while lam < 1e12:
@@ -412,22 +410,22 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             lam *= 10
         if not accepted:
             if not fresh:  # the iteration Jacobians limit the descent: relinearise here and go on
-                S, Jt, fresh = _linearise(pb, theta, x, uv, zm, central=True)
-                endgame, prev_dec, lam = True, np.inf, 1e-6
+                S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+                prev_dec, lam = np.inf, 1e-6
                 continue
             converged = True  # no descent left with exact Jacobians: a minimum (to the residuals' accuracy)
             break
-        # central Jacobians stay the covariance's over a step shorter than _FRESH_STEP sigma
-        # (they change by ~1e-5 relative over 1 sigma, far below their difference error)
+        # fresh Jacobians stay the covariance's over a step shorter than _FRESH_STEP sigma
+        # (they change by ~1e-5 relative over 1 sigma, far below the theta differences' error)
         fresh = fresh and dec < _FRESH_STEP ** 2 * scale
         if not fresh and dec > refresh_ratio ** 2 * prev_dec:  # slow contraction: the Jacobians are stale
-            S, Jt, fresh = _linearise(pb, theta, x, uv, zm, central=endgame)
+            S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
             prev_dec = np.inf
         else:
             prev_dec = dec
     if not fresh:  # max_iter reached: the covariance needs Jacobians at the estimate
-        S, Jt, fresh = _linearise(pb, theta, x, uv, zm, central=True)
-    # covariance at the estimate, fresh central Jacobians
+        S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+    # covariance at the estimate, fresh Jacobians
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)
     crlb_known = _inv(info[:12, :12])[6:12, 6:12]  # theta known: the (X, Z) block alone

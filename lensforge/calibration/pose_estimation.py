@@ -16,9 +16,8 @@ J^T J. The trust region keeps a weakly observable DOF (the paper Zernike lens's 
 Gauss-Newton step; Marquardt's damping (lambda diag(J^T J)) does not, since it damps
 a weak direction least (on 30 noisy paper-Zernike estimates it converged on 7, the
 trust region on 26; ``benchmarks/bench_pose_convergence.py``). The Jacobian is
-``optics.sensitivity.jacobian`` (one batched trace of the 12 central-difference poses,
-or 6 forward ones while far from the minimum), warm-started from the aimed rays. The
-reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
+``optics.sensitivity.jacobian`` (exact: the rays' derivatives carried through the
+trace), warm-started from the aimed rays. The reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
 noise levels of the bench the problem is locally linear, so this is the Cramer-Rao
 bound evaluated at the estimate, and chi2 = r^T r follows a chi-square law with
 m - 6 degrees of freedom.
@@ -66,7 +65,7 @@ from ..errors import ConfigError, PoseRangeError, PupilError, RankError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.pose import DOF_NAMES
-from ..optics.sensitivity import jacobian, observability
+from ..optics.sensitivity import JACOBIAN_EVALS, jacobian, observability
 from ..optics.shack_hartmann import ForwardModel, check_pose_range
 from .initial_poses import prior_covariance
 
@@ -165,14 +164,13 @@ class _Start:
     uv: np.ndarray  # (1, ...) aimed rays
     z: np.ndarray  # (1, m) h(x0)
     Jw: np.ndarray  # (1, m, 6) whitened Jacobian
-    central: bool
     basis: np.ndarray  # (6, k) estimated directions in scaled units
     observable: np.ndarray  # (6,)
     null: np.ndarray  # (6,) DOF moved by a numerically null direction
 
 
 def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLike, *, max_iter: int = 40,
-                         xtol: float = 1e-10, ftol: float = 1e-10, fast_start: bool = True,
+                         xtol: float = 1e-10, ftol: float = 1e-10,
                          max_step: float | None = None, trust_radius: float = 1.0,
                          _start: _Start | None = None) -> BatchPoseEstimate:
     """Whitened least-squares pose estimates for P measurements at once (trust-region LM, batched).
@@ -189,8 +187,7 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     a weakly observable DOF (the paper Zernike lens's rz, 1-sigma ~ 11 deg) from
     jumping out of the bench's range on the first Gauss-Newton step. Directions
     numerically null at x0 (``observability``, bench.rank_rtol) stay at x0 with inf
-    variance. fast_start: forward-difference Jacobians until the cost stalls (same
-    fixed point, fewer traces); otherwise central differences throughout.
+    variance.
     """
     Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
     x = np.array(np.atleast_2d(x0), dtype=float)
@@ -202,7 +199,6 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     n_evals = 0
 
     J = np.zeros((P, Z.shape[1], 6))  # whitened, scaled: d r / d u
-    J_central = np.zeros(P, bool)
     if _start is None:
         res = model.evaluate(x, check_range=False)
         n_evals += P
@@ -211,7 +207,6 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     else:
         uv, zc, valid = _start.uv.copy(), _start.z.copy(), np.ones(1, bool)
         J[0] = _start.Jw[0] * D
-        J_central[0] = _start.central
         need_J = np.zeros(1, bool)
     r = _whiten(L, zc - Z)
     cost = np.where(valid, np.sum(r * r, axis=1), np.inf)
@@ -225,24 +220,15 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     bases = [eye] * P  # (6, k) estimated directions per pose
     null = np.zeros((P, 6), bool)  # DOF moved by a numerically null direction
     observable = np.ones((P, 6), bool)  # the statistical rule
-    # Forward differences (half the traces) while far from the minimum; central ones
-    # once the cost stalls, and only central-Jacobian steps may end the iteration, so
-    # the fixed point J^T r = 0 is the central-difference one.
-    near = np.full(P, not fast_start)
-    if _start is not None:
-        near[0] = _start.central or near[0]
     lim = bench.pose_limits
     first = True
     it = 0
     for it in range(1, max_iter + 1):
-        for cen in (True, False):
-            idx = np.flatnonzero(active & need_J & (near == cen))
-            if idx.size:
-                Jn = jacobian(model, x[idx], uv=uv[idx], z0=zc[idx], central=cen)[0]
-                J[idx] = _whiten_jac(L, Jn) * D
-                J_central[idx] = cen
-                n_evals += (12 if cen else 6) * idx.size
-                need_J[idx] = False
+        idx = np.flatnonzero(active & need_J)
+        if idx.size:
+            J[idx] = _whiten_jac(L, jacobian(model, x[idx], uv=uv[idx])[0]) * D
+            n_evals += JACOBIAN_EVALS * idx.size
+            need_J[idx] = False
         if first:
             # observability at x0 (the rule of optics.sensitivity): numerically null
             # directions are pinned at x0; weak ones are estimated and flagged
@@ -293,27 +279,17 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
         # well predicted one that reached the boundary (More's rules, as scipy's trf)
         shrink = ~acc | (rho < 0.25)
         grow = acc & (rho > 0.75) & (step >= 0.95 * delta[a])
-        fwd_rej = ~acc & ~J_central[a]
-        new_delta = np.where(shrink & ~fwd_rej, 0.25 * step, np.where(grow, 2.0 * delta[a], delta[a]))
+        new_delta = np.where(shrink, 0.25 * step, np.where(grow, 2.0 * delta[a], delta[a]))
         delta[a] = np.minimum(new_delta, cap)
         ai = a[acc]
-        stalled = actual[acc] <= 0.1 * cost[ai]
-        near[ai] |= stalled | small_step[acc] | small_cost[acc]
-        fin = J_central[ai]
         x[ai], r[ai], cost[ai], zc[ai] = xn[acc], rn[acc], cn[acc], rn_res.z[acc]
         uv[ai] = rn_res.uv[acc]
         need_J[ai] = True
-        rej = a[~acc]
-        # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly;
-        # a forward-difference J that fails to descend is replaced by the central one
-        fwd = rej[~J_central[rej]]
-        near[fwd] = True
-        need_J[fwd] = True
-        done = ai[fin & (small_step[acc] | small_cost[acc])]
+        # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly
+        done = ai[small_step[acc] | small_cost[acc]]
         status[done] = "converged"
         active[done] = False
-        rc = ~acc & J_central[a]
-        stuck = a[rc & (tiny | (delta[a] <= 1e-12 * (1.0 + u_norm)))]
+        stuck = a[~acc & (tiny | (delta[a] <= 1e-12 * (1.0 + u_norm)))]
         status[stuck] = "flat"  # no descent direction left: a (possibly flat) minimum
         active[stuck] = False
         # an estimate far outside the bench's pose range is abandoned (reported out of range)
@@ -463,15 +439,14 @@ def _mark_unobservable(cov: np.ndarray, null: np.ndarray) -> np.ndarray:
     return cov
 
 
-def _lm(prob: _Problem, *, jac: str = "central", max_iter: int = 50, tol: float = 1e-8, **_):
+def _lm(prob: _Problem, *, max_iter: int = 50, tol: float = 1e-8, **_):
     """Least squares on the whitened residual for one measurement: ``estimate_poses_batch``
     with P = 1, started from what ``estimate_pose_model`` computed at x0 (rays, h(x0),
-    Jacobian, the estimated directions). jac="forward": forward differences until the
-    cost stalls, central ones to finish (the fixed point is the central-difference one)."""
-    start = _Start(uv=prob.uv0[None], z=prob.z0[None], Jw=prob.Jw0[None], central=jac == "central",
-                   basis=prob.basis, observable=prob.observable, null=prob.null)
+    Jacobian, the estimated directions)."""
+    start = _Start(uv=prob.uv0[None], z=prob.z0[None], Jw=prob.Jw0[None], basis=prob.basis,
+                   observable=prob.observable, null=prob.null)
     b = estimate_poses_batch(prob.model, prob.z[None], prob.x0[None], max_iter=max_iter, xtol=tol, ftol=tol,
-                             fast_start=jac != "central", _start=start)
+                             _start=start)
     status = str(b.status[0])
     ok = status in ("converged", "flat") and bool(np.isfinite(b.chi2[0]))
     return b.poses[0], b.cov[0], ok, STOP_REASONS[status], int(b.n_iter[0]), b.n_evals
@@ -561,14 +536,12 @@ def _in_range(bench: Bench, x: np.ndarray) -> str:
 
 
 def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = "lm", *, on_rank_loss: str = "warn",
-                        jac: str = "central", **options) -> PoseEstimate:
+                        **options) -> PoseEstimate:
     """:func:`estimate_pose` on a prepared ForwardModel (reuse it across many estimates)."""
     bench = model.bench
     m = len(model.modes)
     if method not in ESTIMATORS:
         raise ConfigError(f"method: {method!r} is not one of {', '.join(ESTIMATORS)}")
-    if jac not in ("central", "forward"):
-        raise ConfigError(f"jac: {jac!r} is not 'central' or 'forward'")
     if on_rank_loss not in ("warn", "raise"):
         raise ConfigError(f"on_rank_loss: {on_rank_loss!r} is not 'warn' or 'raise'")
     z = _check_vector("z_measured", z_measured, m) if np.ndim(z_measured) == 1 else None
@@ -583,7 +556,7 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
         raise PupilError(f"initial pose {np.round(x0, 4).tolist()}: {base.reason(0)}; "
                          "start closer to the lens's true pose (the pupil must stay lit)")
     D = np.asarray(bench.pose_scales, dtype=float)
-    J0 = jacobian(model, x0[None], uv=base.uv, z0=base.z, central=jac == "central")[0][0]
+    J0 = jacobian(model, x0[None], uv=base.uv)[0][0]
     Jw0 = _whiten(model.whitener, J0.T).T
     ob = observability(Jw0, D, bench.rank_rtol)
     null = ~np.isfinite(ob.std)
@@ -601,8 +574,8 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
                       "(estimated, but barely measured)", WeakObservabilityWarning, stacklevel=3)
     prob = _Problem(model=model, z=z, x0=x0, uv0=base.uv[0], z0=base.z[0], Jw0=Jw0, basis=ob.basis, null=null, D=D,
                     observable=ob.observable)
-    x, cov, converged, message, iterations, n_evals = ESTIMATORS[method](prob, jac=jac, **options)
-    n_evals += 1 + (12 if jac == "central" else 6)
+    x, cov, converged, message, iterations, n_evals = ESTIMATORS[method](prob, **options)
+    n_evals += 1 + JACOBIAN_EVALS
     out = _in_range(bench, x)
     if out:
         converged = False
@@ -622,9 +595,7 @@ def estimate_pose(bench: Bench, lens: Lens, z_measured: ArrayLike, x0: ArrayLike
     method: a name in ``ESTIMATORS``: "lm" (default; least squares on noise-whitened
     residuals, covariance (J^T R^-1 J)^-1) or "ukf" (the paper's baseline; see the
     module docstring for why ``ukf_repeats`` > 1 gives an overconfident covariance).
-    x0: initial pose (default nominal). Options: jac ("central" or "forward": forward
-    differences while far from the minimum, half the traces per iteration; central ones
-    to finish), on_rank_loss ("warn" or "raise"); lm: max_iter (50 iterations), tol
+    x0: initial pose (default nominal). Options: on_rank_loss ("warn" or "raise"); lm: max_iter (50 iterations), tol
     (1e-8, relative step and cost change); ukf: prior_cov (default from ``initial_poses``), ukf_repeats
     (12, the paper's), ukf_alpha/beta/kappa (0.5, 2, 0), ukf_process_cov (zero: static
     state).

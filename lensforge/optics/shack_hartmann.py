@@ -35,8 +35,13 @@ from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
 from .sensor_range import SensorRange, centroid_slopes, quadrature_rule, range_use, summarize_range, window_gain
-from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel
+from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel, trace_rays
 from .zernike import modes_up_to_order, zernike_gradient
+
+# step (mm) of the central differences in the beam coordinates that give the ray map's second
+# derivatives (for d|det|/dx): truncation ~ step^2 times the fourth derivative (~1e-8 relative even
+# for a 25 um layer ripple), rounding ~1e-16 / step
+_UV_STEP = 1e-5
 
 __all__ = ["LensletPupil", "lenslet_pupil", "ForwardModel", "ZernikeResult", "measure", "check_pose_range"]
 
@@ -238,28 +243,105 @@ class ForwardModel:
 
     def evaluate(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = True) -> ZernikeResult:
         """Noise-free Zernike coefficients for poses (P, 6); never raises on bad rays."""
+        return self._zernike(self._aim(poses, uv0, check_range))
+
+    def _aim(self, poses, uv0, check_range: bool) -> dict:
+        """The aimed quadrature rays at poses: uv (P, n*q, 2), slopes sq (P, n, q, 2),
+        status st (P, n, q), irradiance irr (P, n*q) of the beam over |det|, rays traced."""
         poses = np.atleast_2d(np.asarray(poses, dtype=float))
         if check_range:
             check_pose_range(self.bench, poses)
-        sensor = self.bench.sensor
-        n_l = self.pupil.n_lenslets
-        q = self.quad_weights.size
         uv, sq, det, st, n = aim_rays(self.bench, self.lens, poses, self.targets, u0=uv0, kernel=self.kernel)
-        P = uv.shape[0]
-        w = 0.5 * self.bench.laser.beam_diameter_mm
+        P, q = uv.shape[0], self.quad_weights.size
         with np.errstate(divide="ignore", invalid="ignore"):
-            irr = np.exp(-2.0 * (uv[..., 0] ** 2 + uv[..., 1] ** 2) / (w * w)) / det
-        st = st.reshape(P, n_l, q)
-        wi = np.where(st == OK, irr.reshape(P, n_l, q), 0.0) * self.quad_weights
+            irr = self._beam(uv) / det
+        return {"poses": poses, "uv": uv, "sq": sq.reshape(P, -1, q, 2), "st": st.reshape(P, -1, q), "irr": irr,
+                "n": n}
+
+    def _beam(self, uv: np.ndarray) -> np.ndarray:
+        """Input irradiance (relative to its peak) of the Gaussian beam at beam coordinates uv (..., 2)."""
+        w = 0.5 * self.bench.laser.beam_diameter_mm
+        return np.exp(-2.0 * (uv[..., 0] ** 2 + uv[..., 1] ** 2) / (w * w))
+
+    def _weights(self, a: dict) -> np.ndarray:
+        """w_q I_q (P, n, q): the centroid weights of the traced quadrature rays (0 where a ray failed)."""
+        P, n_l, q = a["st"].shape
+        return np.where(a["st"] == OK, a["irr"].reshape(P, n_l, q), 0.0) * self.quad_weights
+
+    def _centroids(self, sq, wi) -> np.ndarray:
+        return centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
+
+    def _zernike(self, a: dict) -> ZernikeResult:
+        sensor = self.bench.sensor
+        wi = self._weights(a)
         irr_mean = wi.sum(axis=2)
-        slopes = centroid_slopes(sq.reshape(P, n_l, q, 2), wi, self.quad_offsets, self.quad_weights, self.window_gain)
-        status = st.max(axis=2)  # OK (0) only if every quadrature ray is OK
+        slopes = self._centroids(a["sq"], wi)
+        status = a["st"].max(axis=2)  # OK (0) only if every quadrature ray is OK
         slopes = np.where((status == OK)[..., None] & (irr_mean > 0)[..., None], slopes, 0.0)
         thr = sensor.irradiance_threshold
         use = range_use(sensor, self.bench.laser.wavelength_nm, self.pupil.centres, self.pupil.neighbours, slopes)
         valid = np.all(status == OK, axis=1) & np.all(irr_mean >= thr, axis=1) & np.all(use <= 1.0, axis=1)
         z = self.pupil.fit(slopes)
-        return ZernikeResult(z, slopes, irr_mean, status, valid, uv, n, thr, use, sensor.spot_assignment)
+        return ZernikeResult(z, slopes, irr_mean, status, valid, a["uv"], a["n"], thr, use, sensor.spot_assignment)
+
+    def pose_jacobian(self, poses: ArrayLike, uv0: ArrayLike | None = None,
+                      check_range: bool = False) -> tuple[np.ndarray, ZernikeResult]:
+        """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad) and the model at them.
+
+        Each aimed ray stays on its target: with the ray map's derivatives J = d(X, Y)/d(u, v)
+        and d(X, Y)/dx (``trace_rays(pose_derivatives=True)``) the aimed beam coordinates
+        move by du/dx = -J^-1 dX/dx (implicit function theorem), and its slope by
+        ds/dx + ds/d(u, v) du/dx. The irradiance weights I = I_beam(u) / |det J| move with
+        u and with det J, whose derivative needs second derivatives of the ray map: those
+        come from central differences in u and v (step ``_UV_STEP``) of the exact first
+        derivatives, with d/dx (dX/du) = d/du (dX/dx) (symmetry of second derivatives), so
+        four traced rays per aimed ray give every direction. The centroid's derivative is
+        exact by a complex step through ``centroid_slopes``; the Zernike fit is linear.
+        uv0 warm-starts the aim (e.g. the rays of a previous evaluation at x).
+        """
+        a = self._aim(poses, uv0, check_range)
+        res = self._zernike(a)
+        x, uv = a["poses"], a["uv"]
+        P, N = uv.shape[:2]
+
+        # the aimed rays and, for the second derivatives, each displaced by +-_UV_STEP in u and in v:
+        # one trace of 5 P poses, d(X, Y, sx, sy) along u, v and the six pose directions (..., 4, 8)
+        shifts = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]]) * _UV_STEP
+        t = trace_rays(self.bench, self.lens, np.tile(x, (5, 1)), (uv[None] + shifts[:, None, None]).reshape(-1, N, 2),
+                       kernel=self.kernel, pose_derivatives=True)
+        Ds = np.concatenate([t.derivatives, t.pose_derivatives], axis=-1).reshape(5, P, N, 4, 8)
+        ok = np.all((t.status == OK).reshape(5, P, N), axis=0)
+        D = Ds[0]
+        J = D[..., :2, :2]
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        det = np.where(ok & (det != 0), det, 1.0)
+        Jinv = np.stack([np.stack([J[..., 1, 1], -J[..., 0, 1]], -1), np.stack([-J[..., 1, 0], J[..., 0, 0]], -1)],
+                        -2) / det[..., None, None]
+        du = -Jinv @ D[..., :2, 2:]  # (P, N, 2, 6): the aimed (u, v) along each pose direction
+        dsq = D[..., 2:, 2:] + D[..., 2:, :2] @ du  # (P, N, 2, 6)
+        # second derivatives of (X, Y): H[c] = d/d(u, v)_c of every first derivative (P, N, 2, 8)
+        H = [(Ds[1 + 2 * c, ..., :2, :] - Ds[2 + 2 * c, ..., :2, :]) / (2 * _UV_STEP) for c in range(2)]
+        # total derivative of J's column c along each pose direction, on the aimed path
+        dJ = np.stack([H[c][..., 2:] + H[0][..., c, None] * du[..., None, 0, :]
+                       + H[1][..., c, None] * du[..., None, 1, :] for c in range(2)], axis=-2)  # (P, N, 2, 2, 6)
+        ddet = (dJ[..., 0, 0, :] * J[..., 1, 1, None] + J[..., 0, 0, None] * dJ[..., 1, 1, :]
+                - dJ[..., 0, 1, :] * J[..., 1, 0, None] - J[..., 0, 1, None] * dJ[..., 1, 0, :])
+        w = 0.5 * self.bench.laser.beam_diameter_mm
+        # I = I_beam(u) / |det|: dI / I = -4 u.du / w^2 - d det / det
+        dirr = a["irr"][..., None] * (-4.0 / (w * w) * np.einsum("pnk,pnkj->pnj", uv, du) - ddet / det[..., None])
+        _, n_l, q = a["st"].shape
+        good = (a["st"] == OK) & ok.reshape(P, n_l, q)
+        wi = self._weights(a)
+        dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, 6), 0.0) * self.quad_weights[:, None]
+        dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, 6), 0.0)
+        # complex step: centroid_slopes is analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly
+        eps = 1e-30
+        sq_c = a["sq"][:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, 6, n, q, 2)
+        wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, 6, n, q)
+        ds = self._centroids(sq_c, wi_c).imag / eps  # (P, 6, n, 2)
+        lit = (res.status == OK) & (res.irradiance > 0)
+        ds = np.where(lit[:, None, :, None], ds, 0.0)
+        return np.swapaxes(self.pupil.fit(ds), 1, 2), res
 
     def sensor_range(self, pose: ArrayLike | None = None) -> SensorRange:
         """Spot-assignment summary at ``pose`` (default nominal): ok, max slope, lenslets out."""

@@ -32,7 +32,7 @@ import numpy as np
 from .bench import Bench
 from .jit import compile_notice
 from .lens import Lens
-from .pose import right_jacobian_so3, rotations, skew
+from .pose import rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
@@ -373,6 +373,9 @@ def _trace_one(u, v, R, t, dT, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly,
     return px + s * L, py + s * M, L, M, N, 0
 
 
+_CHUNK = 64  # rays per parallel work item (one scratch allocation each)
+
+
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
 def _trace_grid(uv, Rs, ts, dTs, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
                 out, deriv, status):
@@ -381,20 +384,69 @@ def _trace_grid(uv, Rs, ts, dTs, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, pol
     n_p = Rs.shape[0]
     n_r = uv.shape[1]
     m = 2 + dTs.shape[1]
-    for idx in nb.prange(n_p * n_r):
-        p = idx // n_r
-        i = idx - p * n_r
+    total = n_p * n_r
+    for chunk in nb.prange((total + _CHUNK - 1) // _CHUNK):
         tan = np.empty((m, 6))
-        x, y, L, M, N, st = _trace_one(uv[p, i, 0], uv[p, i, 1], Rs[p], ts[p], dTs[p], z0, bx, by, bsx, bsy,
-                                       c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, deriv[p, i])
-        out[p, i, 0] = x
-        out[p, i, 1] = y
-        out[p, i, 2] = L
-        out[p, i, 3] = M
-        out[p, i, 4] = N
-        if st != 0:
-            deriv[p, i, :, :] = 0.0
-        status[p, i] = st
+        for idx in range(chunk * _CHUNK, min(total, (chunk + 1) * _CHUNK)):
+            p = idx // n_r
+            i = idx - p * n_r
+            x, y, L, M, N, st = _trace_one(uv[p, i, 0], uv[p, i, 1], Rs[p], ts[p], dTs[p], z0, bx, by, bsx, bsy,
+                                           c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, deriv[p, i])
+            out[p, i, 0] = x
+            out[p, i, 1] = y
+            out[p, i, 2] = L
+            out[p, i, 3] = M
+            out[p, i, 4] = N
+            if st != 0:
+                deriv[p, i, :, :] = 0.0
+            status[p, i] = st
+
+
+@nb.njit(cache=True, fastmath=_FM)
+def _aim_one(p, i, targets, u0, Rs, ts, no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
+             n_glass, tol, maxit, out, status, counts, tan, d):
+    """Aim the ray of target i at pose p (``_aim``); tan, d: scratch."""
+    u = u0[p, i, 0]
+    v = u0[p, i, 1]
+    X = targets[i, 0]
+    Y = targets[i, 1]
+    st = 5
+    traced = 0
+    sx = 0.0
+    sy = 0.0
+    det = 0.0
+    for it in range(maxit):
+        x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
+                                       poly, ripple, zv, ap_r, n_glass, tan, d)
+        traced += 1
+        if s0 != 0:
+            st = s0
+            break
+        xu, yu, xv, yv = d[0, 0], d[0, 1], d[1, 0], d[1, 1]
+        det = xu * yv - xv * yu
+        rx = x - X
+        ry = y - Y
+        sx = L / N
+        sy = M / N
+        if det == 0.0:
+            st = 5
+            break
+        du = -(yv * rx - xv * ry) / det
+        dv = -(-yu * rx + xu * ry) / det
+        u += du
+        v += dv
+        if abs(rx) < tol and abs(ry) < tol:
+            sx += d[0, 2] * du + d[1, 2] * dv
+            sy += d[0, 3] * du + d[1, 3] * dv
+            st = 0
+            break
+    out[p, i, 0] = u
+    out[p, i, 1] = v
+    out[p, i, 2] = sx
+    out[p, i, 3] = sy
+    out[p, i, 4] = abs(det)
+    status[p, i] = st
+    counts[p, i] = traced
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
@@ -414,52 +466,13 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
     n_p = Rs.shape[0]
     n_t = targets.shape[0]
     no_pose = np.zeros((0, 3, 4))
-    for idx in nb.prange(n_p * n_t):
-        p = idx // n_t
-        i = idx - p * n_t
-        u = u0[p, i, 0]
-        v = u0[p, i, 1]
-        X = targets[i, 0]
-        Y = targets[i, 1]
-        st = 5
-        traced = 0
-        sx = 0.0
-        sy = 0.0
-        det = 0.0
+    total = n_p * n_t
+    for chunk in nb.prange((total + _CHUNK - 1) // _CHUNK):
         tan = np.empty((2, 6))
         d = np.empty((2, 4))
-        for it in range(maxit):
-            x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
-                                           poly, ripple, zv, ap_r, n_glass, tan, d)
-            traced += 1
-            if s0 != 0:
-                st = s0
-                break
-            xu, yu, xv, yv = d[0, 0], d[0, 1], d[1, 0], d[1, 1]
-            det = xu * yv - xv * yu
-            rx = x - X
-            ry = y - Y
-            sx = L / N
-            sy = M / N
-            if det == 0.0:
-                st = 5
-                break
-            du = -(yv * rx - xv * ry) / det
-            dv = -(-yu * rx + xu * ry) / det
-            u += du
-            v += dv
-            if abs(rx) < tol and abs(ry) < tol:
-                sx += d[0, 2] * du + d[1, 2] * dv
-                sy += d[0, 3] * du + d[1, 3] * dv
-                st = 0
-                break
-        out[p, i, 0] = u
-        out[p, i, 1] = v
-        out[p, i, 2] = sx
-        out[p, i, 3] = sy
-        out[p, i, 4] = abs(det)
-        status[p, i] = st
-        counts[p, i] = traced
+        for idx in range(chunk * _CHUNK, min(total, (chunk + 1) * _CHUNK)):
+            _aim_one(idx // n_t, idx % n_t, targets, u0, Rs, ts, no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
+                     poly, ripple, zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d)
 
 
 # ----------------------------------------------------------------------------- Python API
@@ -496,11 +509,17 @@ def pose_frame_derivatives(poses) -> np.ndarray:
     """(P, 6, 3, 4): derivatives of [R | t] of T_SO along the six pose-vector components
     (translation: dt = e_j; rotation: dR = R [J_r(r) e_j]x, J_r the right Jacobian of SO(3))."""
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
-    R = rotations(poses[:, 3:])
+    r = poses[:, 3:]
+    th = np.linalg.norm(r, axis=1)[:, None, None]
+    K = skew(r)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
+    b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths**3)
+    Jr = np.eye(3) - a * K + b * K @ K  # right Jacobian, as pose.right_jacobian_so3
     dT = np.zeros((len(poses), 6, 3, 4))
     dT[:, :3, :, 3] = np.eye(3)
-    for p, r in enumerate(poses[:, 3:]):
-        dT[p, 3:, :, :3] = R[p] @ skew(right_jacobian_so3(r).T)
+    dT[:, 3:, :, :3] = rotations(r)[:, None] @ skew(np.swapaxes(Jr, 1, 2))
     return dT
 
 

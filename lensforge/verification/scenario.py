@@ -90,7 +90,7 @@ class ScenarioConfig:
     lit_margin_mm: lateral margin a planned pose must keep lit (nominal model);
     sensor_cad_translation_mm / _rotation_rad: 1-sigma CAD error of Z (ASSUMPTION);
     grasp: gripper/robot uncertainty of the grasp; estimator: "lm" or "ukf";
-    ukf_repeats: for ukf; jac: estimator Jacobian ("central"/"forward").
+    ukf_repeats: for ukf.
     """
 
     n_convergence: int = 12
@@ -105,7 +105,6 @@ class ScenarioConfig:
     grasp: InitialPoseModel = field(default_factory=InitialPoseModel)
     estimator: str = "lm"
     ukf_repeats: int = 12
-    jac: str = "central"
 
     def __post_init__(self):
         if self.estimator not in ESTIMATORS:
@@ -208,7 +207,7 @@ def plan_poses(bench: Bench, lens: Lens, design: str, rng: np.random.Generator, 
 
 
 def _estimate(model, z, x0, cfg: ScenarioConfig, prior):
-    opts = {"jac": cfg.jac}
+    opts = {}
     if cfg.estimator == "ukf":
         opts.update(prior_cov=prior, ukf_repeats=cfg.ukf_repeats)
     with warnings.catch_warnings():
