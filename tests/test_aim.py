@@ -7,13 +7,15 @@ Hessian included) and takes the last step from those derivatives. Both are check
 conic, aspheric terms, polynomial freeform terms and layer ripple.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 import lensforge as lf
 from lensforge.optics.materials import Material
 from lensforge.optics.surfaces import Freeform
-from lensforge.optics.trace import OK, aim_rays, lens_kernel, trace_rays
+from lensforge.optics.trace import OK, aim_rays, kernel_tangents, lens_kernel, trace_rays
 
 
 def _every_term_lens():
@@ -100,3 +102,50 @@ def test_pose_derivatives_match_finite_differences(case):
         assert np.all(err <= est + 1e-8 * scale), (j, float((err - est).max()))
     # tilting the lens steers the rays (a 4 mm thick, weakly powered lens: ~0.04 rad/rad)
     assert np.abs(res.pose_derivatives[..., 2:, 3:]).max() > 0.01
+
+
+def _perturbed(lens, j, h):
+    """The every-term lens moved by h along direction j (thickness, index, front
+    curvature, front conic, back aspheric r^4, front poly x^2 y, back poly y, front
+    ripple amplitude, front ripple period)."""
+    f, b = lens.front, lens.back
+    if j == 0:
+        return lens.replace(thickness=lens.thickness + h)
+    if j == 1:
+        return lens.replace(index_offset=lens.index_offset + h)
+    if j == 2:
+        return lens.replace(front=dataclasses.replace(f, curvature=f.curvature + h))
+    if j == 3:
+        return lens.replace(front=dataclasses.replace(f, conic=f.conic + h))
+    if j == 4:
+        return lens.replace(back=dataclasses.replace(b, aspheric=(b.aspheric[0] + h,)))
+    if j == 7:
+        return lens.replace(front=dataclasses.replace(f, ripple_amplitude=f.ripple_amplitude + h))
+    if j == 8:
+        return lens.replace(front=dataclasses.replace(f, ripple_period=f.ripple_period + h))
+    poly = np.array(f.poly if j == 5 else b.poly)
+    poly[(2, 1) if j == 5 else (0, 1)] += h
+    side = "front" if j == 5 else "back"
+    return lens.replace(**{side: dataclasses.replace(getattr(lens, side), poly=poly)})
+
+
+def test_lens_derivatives_match_finite_differences(case):
+    bench, lens, uv = case
+    wl = bench.laser.wavelength_nm
+    steps = np.array([1e-4, 1e-5, 1e-6, 1e-4, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6])
+    n = len(steps)
+    lt = kernel_tangents([lens_kernel(_perturbed(lens, j, steps[j]), wl) for j in range(n)],
+                         [lens_kernel(_perturbed(lens, j, -steps[j]), wl) for j in range(n)], steps)
+    res = trace_rays(bench, lens, POSES, uv, lens_tangents=lt)
+    assert np.all(res.status == OK) and res.lens_derivatives.shape == (2, len(uv), 4, n)
+    values = lambda r: np.concatenate([r.xy, r.slopes], axis=-1)
+    scale = np.abs(res.lens_derivatives).max(axis=(0, 1))  # (4, n): per row and direction
+    for j in range(n):
+        fd = {}
+        for f in (2.0, 1.0):
+            fd[f] = (values(trace_rays(bench, _perturbed(lens, j, f * steps[j]), POSES, uv))
+                     - values(trace_rays(bench, _perturbed(lens, j, -f * steps[j]), POSES, uv))) / (2 * f * steps[j])
+        est = np.abs(fd[2.0] - fd[1.0])
+        err = np.abs(res.lens_derivatives[..., j] - fd[1.0])
+        assert np.all(err <= est + 1e-7 * scale[:, j]), (j, float((err - est).max()))
+        assert scale[:, j].max() > 0  # every direction moves the rays

@@ -52,6 +52,50 @@ def test_space_reproduces_nominal_and_mean(setup):
     assert sp.sigma[sp.index("thickness_mm")] == TOL.thickness_sigma_mm
 
 
+def test_exact_theta_jacobian_matches_differences_of_the_model(setup, param):
+    """dh/dtheta (lens tangents through the trace) against central differences of the
+    model over theta at two steps (their gap bounds the difference error), at an
+    as-built theta; the same for the elementary deviations the parameterisation uses."""
+    from lensforge.calibration.joint import JointProblem
+    from lensforge.calibration.lens_params import elementary_jacobian
+    from lensforge.optics.shack_hartmann import ForwardModel
+
+    bench, lens, scene, plan = setup
+    theta = np.array([0.8, -1.1, 0.5])[:param.k]
+    pb = JointProblem(bench, param, np.zeros((len(plan), 1)), np.zeros((len(plan), 4, 4)), scene.T_SO_nominal,
+                      scene.noise.cov, True)
+    base = pb.model(theta).evaluate(plan, check_range=False)
+    _, Jt = pb.jacobians(theta, plan, base.uv)
+    Li = pb.Li
+
+    def diff(h):
+        cols = []
+        for j in range(param.k):
+            e = np.eye(param.k)[j] * h
+            z = [ForwardModel(bench, param.build(theta + sg * e), validate=False).evaluate(
+                plan, uv0=base.uv, check_range=False).z for sg in (1.0, -1.0)]
+            cols.append((z[0] - z[1]) @ Li.T / (2 * h))
+        return np.stack(cols, axis=-1)
+
+    fd1, fd2 = diff(0.01), diff(0.02)
+    col = np.linalg.norm(Jt, axis=1)  # (n, k) whitened: noise sigmas per prior sigma
+    assert np.all(col.max(axis=0) > 0.1)  # each direction is seen (the parameterisation kept it)
+    err = np.linalg.norm(Jt - fd1, axis=1)
+    est = np.linalg.norm(fd2 - fd1, axis=1)
+    assert np.all(err <= est + 1e-6 * col.max()), (err / col.max(), est / col.max())
+    # elementary deviations: the parameterisation's whole Jacobian, against differences
+    space = param.space
+    Je = elementary_jacobian(bench, space, plan[:3])
+    Lm = ForwardModel(bench, space.build(space.mean), validate=False)
+    for j in np.flatnonzero(space.sigma > 0)[::3]:
+        e = np.zeros(space.size)
+        e[j] = 0.01 * space.sigma[j]
+        z = [Lm.__class__(bench, space.build(space.mean + sg * e), validate=False).evaluate(plan[:3]).z
+             for sg in (1.0, -1.0)]
+        fd = (z[0] - z[1]) @ Li.T / 0.02
+        assert np.allclose(Je[..., j], fd, rtol=0, atol=1e-4 * np.abs(Je).max() + 1e-3 * np.abs(fd).max()), space.names[j]
+
+
 def test_noise_free_exactness(setup, param):
     """theta, X and Z recovered to 1e-8 relative from noise-free data of the lens of theta."""
     bench, lens, scene, plan = setup

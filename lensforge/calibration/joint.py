@@ -27,16 +27,16 @@ two-stage solution (per-pose estimates + hand-eye) and theta = 0, all unknowns f
 from the first step (theta steps capped at 3 prior sigmas; holding theta for a first
 step moved the poses onto the nominal lens's biased fit, from which theta wandered to
 10-26 prior sigmas before coming back: 2-4x more traces to the same minimum). Jacobians:
-dh/dx exact (``optics.sensitivity.jacobian``), chained analytically to (X, Z, a_i);
-dh/dtheta by forward differences of the lens (one model per direction; the study
-passes the parameterisation's own at the plan as the start). They cost most of the
+dh/dx and dh/dtheta exact, in one batched trace (``ForwardModel.jacobians`` with the
+parameterisation's lens tangents), dh/dx chained analytically to (X, Z, a_i); the study
+passes the parameterisation's dh/dtheta at the plan as the start. They cost most of the
 time, so the iterations reuse them (inexact Gauss-Newton with exact residuals) and
 relinearise only when a step fails to shrink the Gauss-Newton decrement by 4x. With
 non-zero residuals r the fixed point of Jacobians J + dJ taken at another state is
 off the minimum by (J^T J)^-1 dJ^T r, so convergence is always confirmed with pose
 and theta Jacobians at the estimate: it is where the remaining step with those is
 below ``tol`` (1e-2) sigma, and the covariance uses them (taken within 0.3 sigma of
-the estimate, over which they change by far less than the theta differences' error).
+the estimate, over which dh/dtheta changes by ~0.3 %).
 
 Uncertainty: the covariance of (xi_X, xi_Z, theta) is the inverse of the Schur
 complement of the joint information (priors included) at the estimate, i.e. the joint
@@ -62,7 +62,6 @@ from .lens_params import LensParameterisation
 __all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_calibrate_from", "joint_information", "pose_chain", "chain_jacobians",
            "simulate_joint_data"]
 
-_THETA_STEP = 0.05  # difference step in theta (prior-sigma units; h is near-linear at this size)
 # relinearise the iteration Jacobians when a step is not at least this much smaller than the one before
 _REFRESH_RATIO = 0.5
 # converged when the remaining Gauss-Newton step is below this many 1-sigma (Mahalanobis length)
@@ -223,22 +222,13 @@ class JointProblem:
         self.n_traced += JACOBIAN_EVALS * self.n
         return np.einsum("ij,njp->nip", self.Li, J)
 
-    def theta_jacobian(self, theta, x, z0, uv):
-        """Whitened dh/dtheta (n, m, k): forward differences of the lens (h is nearly
-        linear in theta: 1 % change of the derivative per prior sigma), rays aimed from
-        the current solution uv."""
-        cols = []
-        uv = np.asarray(uv)
-        for j in range(self.k):
-            e = np.zeros(self.k)
-            e[j] = _THETA_STEP
-            zp = ForwardModel(self.bench, self.param.build(theta + e), validate=False).evaluate(
-                x, uv0=uv, check_range=False).z
-            cols.append((zp - z0) / _THETA_STEP)
-            self.n_traced += self.n
-        if not cols:
-            return np.zeros((self.n, self.m, 0))
-        return np.einsum("ij,knj->nik", self.Li, np.stack(cols))
+    def jacobians(self, theta, x, uv):
+        """Whitened dh/dx (n, m, 6) and dh/dtheta (n, m, k), exact, in one batched trace
+        (``ForwardModel.jacobians`` with the parameterisation's lens tangents at theta)."""
+        lt = self.param.tangents(theta, self.bench.laser.wavelength_nm)
+        J, Jt, _ = self.model(theta).jacobians(x, uv0=uv, lens_tangents=lt)
+        self.n_traced += JACOBIAN_EVALS * self.n
+        return np.einsum("ij,njp->nip", self.Li, J), np.einsum("ij,njp->nip", self.Li, Jt)
 
     def blocks(self, S, Jt, B, x, X):
         """Per-pose Jacobians: global (n, m, 12+k) and robot error (n, m, 6)."""
@@ -305,10 +295,10 @@ def _inv(S):
     return 0.5 * (C + C.T)
 
 
-def _linearise(pb, theta, x, uv, zm):
+def _linearise(pb, theta, x, uv):
     """(S, Jt, True) at the state: pose and theta Jacobians (the covariance's when the state
     is the estimate)."""
-    return pb.pose_jacobian(theta, x, uv), pb.theta_jacobian(theta, x, zm, uv), True
+    return (*pb.jacobians(theta, x, uv), True)
 
 
 def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
@@ -359,9 +349,10 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     cost = pb.cost(r, a, theta)
     # Iteration Jacobians (inexact Gauss-Newton): kept while the steps contract; the
     # residuals are exact, so the fixed point is the exact minimiser once they are fresh.
-    S = pb.pose_jacobian(theta, x, uv)
-    Jt = (np.asarray(theta_jacobian0, float)[used] if theta_jacobian0 is not None
-          else pb.theta_jacobian(theta, x, zm, uv))
+    if theta_jacobian0 is not None:
+        S, Jt = pb.pose_jacobian(theta, x, uv), np.asarray(theta_jacobian0, float)[used]
+    else:
+        S, Jt = pb.jacobians(theta, x, uv)
     fresh = theta_jacobian0 is None  # S, Jt are the covariance's: at the current state (or within 0.3 sigma)
     dof = n * pb.m - 12 - (0 if theta_prior else k)
     lam = 1e-6
@@ -386,7 +377,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 break
             # the iteration Jacobians' fixed point is off the minimum by (J^T J)^-1 dJ^T r
             # when the residuals r are not zero: finish with fresh ones
-            S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+            S, Jt, fresh = _linearise(pb, theta, x, uv)
             prev_dec = np.inf
             continue
         accepted = False
@@ -410,21 +401,21 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             lam *= 10
         if not accepted:
             if not fresh:  # the iteration Jacobians limit the descent: relinearise here and go on
-                S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+                S, Jt, fresh = _linearise(pb, theta, x, uv)
                 prev_dec, lam = np.inf, 1e-6
                 continue
             converged = True  # no descent left with exact Jacobians: a minimum (to the residuals' accuracy)
             break
         # fresh Jacobians stay the covariance's over a step shorter than _FRESH_STEP sigma
-        # (they change by ~1e-5 relative over 1 sigma, far below the theta differences' error)
+        # (dh/dtheta changes by ~1 % per prior sigma of theta, dh/dx far less)
         fresh = fresh and dec < _FRESH_STEP ** 2 * scale
         if not fresh and dec > refresh_ratio ** 2 * prev_dec:  # slow contraction: the Jacobians are stale
-            S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+            S, Jt, fresh = _linearise(pb, theta, x, uv)
             prev_dec = np.inf
         else:
             prev_dec = dec
     if not fresh:  # max_iter reached: the covariance needs Jacobians at the estimate
-        S, Jt, fresh = _linearise(pb, theta, x, uv, zm)
+        S, Jt, fresh = _linearise(pb, theta, x, uv)
     # covariance at the estimate, fresh Jacobians
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)

@@ -58,8 +58,7 @@ def candidate_information(bench, param: LensParameterisation, scene, x, robot_co
     res = model.evaluate(x, check_range=False)
     pb.z = res.z
     pb.m = res.z.shape[1]
-    S = pb.pose_jacobian(theta, x, res.uv)
-    Jt = pb.theta_jacobian(theta, x, res.z, res.uv)
+    S, Jt = pb.jacobians(theta, x, res.uv)
     dX, dZ, dA = chain_jacobians(B, x, scene.X)
     Jg = np.concatenate([S @ dX, S @ dZ, Jt], axis=2)
     Ja = S @ dA

@@ -41,9 +41,11 @@ from ..manufacturing.tolerances import scale_canonical
 from ..optics.lens import Lens
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials
+from ..optics.trace import LensTangents, kernel_tangents, lens_kernel
 from ..optics.zernike import zernike_monomials
 
-__all__ = ["LensSpace", "LensParameterisation", "lens_space", "parameterise", "SIDES", "MODE_NAMES"]
+__all__ = ["LensSpace", "LensParameterisation", "lens_space", "lens_tangents", "elementary_jacobian", "parameterise",
+           "SIDES", "MODE_NAMES"]
 
 SIDES = ("front", "back")
 # Noll mode -> aberration name (for reports)
@@ -183,6 +185,12 @@ class LensParameterisation:
         """The as-built lens of theta (theta = 0: the tolerance model's mean lens)."""
         return self.space.build(self.elementary(theta))
 
+    def tangents(self, theta, wavelength_nm: float) -> LensTangents:
+        """The packed lens's change per unit of each theta component at theta (k tangents):
+        central differences of the packing (no ray traced) over 1e-4 prior sigma (the build
+        is linear in theta except through cure shrinkage's scaling; truncation ~1e-8)."""
+        return lens_tangents(self.build, np.asarray(theta, dtype=float), np.eye(self.k), wavelength_nm)
+
     def project(self, p) -> np.ndarray:
         """theta of the elementary deviations p (least squares in prior-scaled units)."""
         q = (np.asarray(p, dtype=float) - self.space.mean)
@@ -196,24 +204,22 @@ class LensParameterisation:
         return " ".join(f"{v[j]:+.2f} {self.space.names[j]}" for j in order)
 
 
-def elementary_jacobian(bench, space: LensSpace, poses, rel_step: float = 1e-2) -> np.ndarray:
-    """Whitened, prior-scaled dh/dp (P, m, d) at the mean lens over poses (P, 6): central
-    differences with steps rel_step * sigma_p (h is smooth in p at these sizes)."""
+def lens_tangents(build, x0, directions, wavelength_nm: float, step: float = 1e-4) -> LensTangents:
+    """Tangents of the packed lens build(x) at x0 along each row of directions (central
+    differences of the packing over step; no ray is traced)."""
+    plus = [lens_kernel(build(x0 + step * d), wavelength_nm) for d in directions]
+    minus = [lens_kernel(build(x0 - step * d), wavelength_nm) for d in directions]
+    return kernel_tangents(plus, minus, step)
+
+
+def elementary_jacobian(bench, space: LensSpace, poses) -> np.ndarray:
+    """Whitened, prior-scaled dh/dp (P, m, d) at the mean lens over poses (P, 6): the
+    forward model's exact derivative along each elementary deviation (one sigma_p each)."""
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
-    Li = ForwardModel(bench, space.lens, validate=False).whitener
-    cols = []
-    for j in range(space.size):
-        if space.sigma[j] == 0:
-            cols.append(np.zeros((poses.shape[0], Li.shape[0])))
-            continue
-        h = rel_step * space.sigma[j]
-        zs = []
-        for sgn in (1.0, -1.0):
-            p = space.mean.copy()
-            p[j] += sgn * h
-            zs.append(ForwardModel(bench, space.build(p), validate=False).evaluate(poses, check_range=False).z)
-        cols.append((zs[0] - zs[1]) / (2 * h) * space.sigma[j])
-    return np.einsum("ij,pjd->pid", Li, np.stack(cols, axis=-1))
+    model = ForwardModel(bench, space.build(space.mean), validate=False)
+    lt = lens_tangents(space.build, space.mean, np.diag(space.sigma), bench.laser.wavelength_nm)
+    _, J, _ = model.jacobians(poses, lens_tangents=lt)
+    return np.einsum("ij,pjd->pid", model.whitener, J)
 
 
 def parameterise(bench, lens: Lens, tolerances, poses, keep_threshold: float = 0.1,

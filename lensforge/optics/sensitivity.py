@@ -39,8 +39,8 @@ __all__ = ["jacobian", "JACOBIAN_EVALS", "difference_jacobian", "observability",
 
 RANK_PENALTY = 1e6  # added to J per lost rank
 # pose traces one ``jacobian`` costs, for cost counts (n_evals, n_traced): the warm re-aim and
-# five traced copies of every aimed ray with their derivatives (ForwardModel.pose_jacobian)
-JACOBIAN_EVALS = 6
+# three traced copies of every aimed ray with their derivatives (ForwardModel.jacobians)
+JACOBIAN_EVALS = 4
 # a null direction (unit vector, scaled units) "moves" a parameter when its entry exceeds
 # this: exact symmetry gives exactly sparse null vectors; a geometry that is degenerate
 # up to noise (``equilibrate``) gives noise-level entries (~1e-4) elsewhere

@@ -35,13 +35,13 @@ from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
 from .sensor_range import SensorRange, centroid_slopes, quadrature_rule, range_use, summarize_range, window_gain
-from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, aim_rays, lens_kernel, trace_rays
+from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, lens_kernel, trace_rays
 from .zernike import modes_up_to_order, zernike_gradient
 
-# step (mm) of the central differences in the beam coordinates that give the ray map's second
-# derivatives (for d|det|/dx): truncation ~ step^2 times the fourth derivative (~1e-8 relative even
-# for a 25 um layer ripple), rounding ~1e-16 / step
-_UV_STEP = 1e-5
+# step (mm) of the forward differences in the beam coordinates that give the ray map's second
+# derivatives (for d|det|/dq, ~1 % of dz/dq): truncation ~ step times the third over the second
+# derivative (1e-6 relative; 3e-4 for a 25 um layer ripple), rounding ~1e-16 / step (1e-10)
+_UV_STEP = 1e-6
 
 __all__ = ["LensletPupil", "lenslet_pupil", "ForwardModel", "ZernikeResult", "measure", "check_pose_range"]
 
@@ -286,62 +286,74 @@ class ForwardModel:
 
     def pose_jacobian(self, poses: ArrayLike, uv0: ArrayLike | None = None,
                       check_range: bool = False) -> tuple[np.ndarray, ZernikeResult]:
-        """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad) and the model at them.
+        """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad) and the model at them
+        (``jacobians`` without lens tangents)."""
+        J, _, res = self.jacobians(poses, uv0, check_range)
+        return J, res
+
+    def jacobians(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = False,
+                  lens_tangents: LensTangents | None = None) -> tuple[np.ndarray, np.ndarray | None, ZernikeResult]:
+        """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad), dz along each of the
+        l lens tangents (P, m, l) (None without them) and the model at the poses.
 
         Each aimed ray stays on its target: with the ray map's derivatives J = d(X, Y)/d(u, v)
-        and d(X, Y)/dx (``trace_rays(pose_derivatives=True)``) the aimed beam coordinates
-        move by du/dx = -J^-1 dX/dx (implicit function theorem), and its slope by
-        ds/dx + ds/d(u, v) du/dx. The irradiance weights I = I_beam(u) / |det J| move with
+        and d(X, Y)/dq along a direction q (``trace_rays``) the aimed beam coordinates move by
+        du/dq = -J^-1 dX/dq (implicit function theorem), and its slope by
+        ds/dq + ds/d(u, v) du/dq. The irradiance weights I = I_beam(u) / |det J| move with
         u and with det J, whose derivative needs second derivatives of the ray map: those
-        come from central differences in u and v (step ``_UV_STEP``) of the exact first
-        derivatives, with d/dx (dX/du) = d/du (dX/dx) (symmetry of second derivatives), so
-        four traced rays per aimed ray give every direction. The centroid's derivative is
-        exact by a complex step through ``centroid_slopes``; the Zernike fit is linear.
-        uv0 warm-starts the aim (e.g. the rays of a previous evaluation at x).
+        come from differences in u and v (step ``_UV_STEP``) of the exact first derivatives,
+        with d/dq (dX/du) = d/du (dX/dq) (symmetry of second derivatives), so two traced
+        copies of each aimed ray give every direction. The centroid's
+        derivative is exact by a complex step through ``centroid_slopes``; the Zernike fit
+        is linear. uv0 warm-starts the aim (e.g. the rays of a previous evaluation at x).
         """
         a = self._aim(poses, uv0, check_range)
         res = self._zernike(a)
         x, uv = a["poses"], a["uv"]
         P, N = uv.shape[:2]
-
-        # the aimed rays and, for the second derivatives, each displaced by +-_UV_STEP in u and in v:
-        # one trace of 5 P poses, d(X, Y, sx, sy) along u, v and the six pose directions (..., 4, 8)
-        shifts = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]]) * _UV_STEP
-        t = trace_rays(self.bench, self.lens, np.tile(x, (5, 1)), (uv[None] + shifts[:, None, None]).reshape(-1, N, 2),
-                       kernel=self.kernel, pose_derivatives=True)
-        Ds = np.concatenate([t.derivatives, t.pose_derivatives], axis=-1).reshape(5, P, N, 4, 8)
-        ok = np.all((t.status == OK).reshape(5, P, N), axis=0)
+        # the aimed rays and, for the second derivatives, each displaced by _UV_STEP in u and in v:
+        # one trace of 3 P poses, d(X, Y, sx, sy) along u, v, the six pose directions and the lens tangents
+        shifts = np.array([[0, 0], [1, 0], [0, 1]]) * _UV_STEP
+        t = trace_rays(self.bench, self.lens, np.tile(x, (3, 1)), (uv[None] + shifts[:, None, None]).reshape(-1, N, 2),
+                       kernel=self.kernel, pose_derivatives=True, lens_tangents=lens_tangents)
+        parts = [t.derivatives, t.pose_derivatives] + ([t.lens_derivatives] if lens_tangents is not None else [])
+        Ds = np.concatenate(parts, axis=-1)
+        nq = Ds.shape[-1] - 2  # directions q: pose, then lens
+        Ds = Ds.reshape(3, P, N, 4, nq + 2)
+        ok = np.all((t.status == OK).reshape(3, P, N), axis=0)
         D = Ds[0]
         J = D[..., :2, :2]
         det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         det = np.where(ok & (det != 0), det, 1.0)
         Jinv = np.stack([np.stack([J[..., 1, 1], -J[..., 0, 1]], -1), np.stack([-J[..., 1, 0], J[..., 0, 0]], -1)],
                         -2) / det[..., None, None]
-        du = -Jinv @ D[..., :2, 2:]  # (P, N, 2, 6): the aimed (u, v) along each pose direction
-        dsq = D[..., 2:, 2:] + D[..., 2:, :2] @ du  # (P, N, 2, 6)
-        # second derivatives of (X, Y): H[c] = d/d(u, v)_c of every first derivative (P, N, 2, 8)
-        H = [(Ds[1 + 2 * c, ..., :2, :] - Ds[2 + 2 * c, ..., :2, :]) / (2 * _UV_STEP) for c in range(2)]
-        # total derivative of J's column c along each pose direction, on the aimed path
+        du = -Jinv @ D[..., :2, 2:]  # (P, N, 2, nq): the aimed (u, v) along each direction
+        dsq = D[..., 2:, 2:] + D[..., 2:, :2] @ du  # (P, N, 2, nq)
+        # second derivatives of (X, Y): H[c] = d/d(u, v)_c of every first derivative (P, N, 2, 2 + nq)
+        H = [(Ds[1 + c, ..., :2, :] - D[..., :2, :]) / _UV_STEP for c in range(2)]
+        # total derivative of J's column c along each direction, on the aimed path
         dJ = np.stack([H[c][..., 2:] + H[0][..., c, None] * du[..., None, 0, :]
-                       + H[1][..., c, None] * du[..., None, 1, :] for c in range(2)], axis=-2)  # (P, N, 2, 2, 6)
+                       + H[1][..., c, None] * du[..., None, 1, :] for c in range(2)], axis=-2)  # (P, N, 2, 2, nq)
         ddet = (dJ[..., 0, 0, :] * J[..., 1, 1, None] + J[..., 0, 0, None] * dJ[..., 1, 1, :]
                 - dJ[..., 0, 1, :] * J[..., 1, 0, None] - J[..., 0, 1, None] * dJ[..., 1, 0, :])
         w = 0.5 * self.bench.laser.beam_diameter_mm
         # I = I_beam(u) / |det|: dI / I = -4 u.du / w^2 - d det / det
-        dirr = a["irr"][..., None] * (-4.0 / (w * w) * np.einsum("pnk,pnkj->pnj", uv, du) - ddet / det[..., None])
+        irr = np.where(np.isfinite(a["irr"]), a["irr"], 0.0)  # a failed ray has no weight (nor derivative)
+        dirr = irr[..., None] * (-4.0 / (w * w) * np.einsum("pnk,pnkj->pnj", uv, du) - ddet / det[..., None])
         _, n_l, q = a["st"].shape
         good = (a["st"] == OK) & ok.reshape(P, n_l, q)
         wi = self._weights(a)
-        dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, 6), 0.0) * self.quad_weights[:, None]
-        dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, 6), 0.0)
+        dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, nq), 0.0) * self.quad_weights[:, None]
+        dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, nq), 0.0)
         # complex step: centroid_slopes is analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly
         eps = 1e-30
-        sq_c = a["sq"][:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, 6, n, q, 2)
-        wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, 6, n, q)
-        ds = self._centroids(sq_c, wi_c).imag / eps  # (P, 6, n, 2)
+        sq_c = a["sq"][:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, nq, n, q, 2)
+        wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, nq, n, q)
+        ds = self._centroids(sq_c, wi_c).imag / eps  # (P, nq, n, 2)
         lit = (res.status == OK) & (res.irradiance > 0)
         ds = np.where(lit[:, None, :, None], ds, 0.0)
-        return np.swapaxes(self.pupil.fit(ds), 1, 2), res
+        Jall = np.swapaxes(self.pupil.fit(ds), 1, 2)  # (P, m, nq)
+        return Jall[..., :6], (Jall[..., 6:] if lens_tangents is not None else None), res
 
     def sensor_range(self, pose: ArrayLike | None = None) -> SensorRange:
         """Spot-assignment summary at ``pose`` (default nominal): ok, max slope, lenslets out."""

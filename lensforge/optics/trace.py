@@ -36,7 +36,7 @@ from .pose import rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
-    "LensKernel", "lens_kernel", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "TraceResult",
+    "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "TraceResult",
 ]
 
 OK, MISSED, TIR, CLIPPED, BACKWARD, NOT_AIMED = 0, 1, 2, 3, 4, 5
@@ -113,8 +113,10 @@ def pose_frames(bench: Bench, poses) -> tuple[np.ndarray, np.ndarray]:
 
 @nb.njit(cache=True, fastmath=_FM)
 def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
-    """(z, dz/dx, dz/dy, d2z/dx2, d2z/dxdy, d2z/dy2, ok) of surface s at (x, y); the
-    second derivatives only when ``hess`` (else 0)."""
+    """(z, dz/dx, dz/dy, d2z/dx2, d2z/dxdy, d2z/dy2, rf, re, zb, ok) of surface s at (x, y);
+    the second derivatives only when ``hess`` (else 0). zb is the base sag under the layer
+    ripple, rf = 1 + a w cos(w zb) and re = a w^2 sin(w zb) its factors (1, 0 without
+    ripple): z = zb + a sin(w zb), grad z = rf grad zb."""
     r2 = x * x + y * y
     cs = c[s]
     z = 0.0
@@ -123,7 +125,7 @@ def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
     if cs != 0.0:
         arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
         if arg <= 0.0:
-            return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
+            return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, False
         root = math.sqrt(arg)
         z = cs * r2 / (1.0 + root)
         dr = cs / root
@@ -181,52 +183,128 @@ def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
     hxy += pxy
     hyy += pyy
     a = ripple[s, 0]
+    f = 1.0
+    e = 0.0
+    zb = z
     if a != 0.0:
         w = 2.0 * math.pi / ripple[s, 1]
         sn = math.sin(w * z)
         f = 1.0 + a * w * math.cos(w * z)
+        e = a * w * w * sn
         if hess:
-            e = a * w * w * sn
             hxx = hxx * f - e * gx * gx
             hxy = hxy * f - e * gx * gy
             hyy = hyy * f - e * gy * gy
         z += a * sn
         gx *= f
         gy *= f
-    return z, gx, gy, hxx, hxy, hyy, True
+    return z, gx, gy, hxx, hxy, hyy, f, e, zb, True
+
+
+@nb.njit(cache=True, fastmath=_FM)
+def _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, Lc, Lk, La, Lp, Lr, j):
+    """Change of the sag and of its gradient at the fixed point (x, y) of surface s along
+    the lens tangent j (dc = Lc[j, s], dk = Lk[j, s], d alpha = La[j, s], d poly =
+    Lp[j, s], d ripple (amplitude, period) = Lr[j, s]); gx, gy, rf, re, zb: the surface's
+    gradient, ripple factors and base sag there (``_sag``). Returns (dz, d dz/dx, d dz/dy)."""
+    r2 = x * x + y * y
+    dz = 0.0
+    dD = 0.0  # change of the radial factor D (grad = (x, y) D + poly gradient)
+    dcs = Lc[j, s]
+    dks = Lk[j, s]
+    if dcs != 0.0 or dks != 0.0:
+        cs = c[s]
+        arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
+        root = math.sqrt(arg)
+        q = 1.0 + root
+        rc = -(1.0 + k[s]) * cs * r2 / root  # d root / dc
+        rk = -0.5 * cs * cs * r2 / root  # d root / dk
+        dz += (r2 / q - cs * r2 * rc / (q * q)) * dcs - cs * r2 * rk / (q * q) * dks
+        dD += (1.0 / root - cs * rc / arg) * dcs - cs * rk / arg * dks
+    za = 0.0
+    da = 0.0
+    for i in range(La.shape[2], 0, -1):
+        a = La[j, s, i - 1]
+        da = da * r2 + 2.0 * i * a
+        za = (za + a) * r2
+    dz += za
+    dD += da
+    d1 = Lp.shape[2]
+    pz = 0.0
+    px = 0.0
+    py = 0.0
+    for p in range(d1 - 1, -1, -1):
+        r = 0.0
+        ry = 0.0
+        for q in range(d1 - 1 - p, -1, -1):
+            ry = ry * y + r
+            r = r * y + Lp[j, s, p, q]
+        px = px * x + pz
+        pz = pz * x + r
+        py = py * x + ry
+    dz += pz
+    dgx = x * dD + px
+    dgy = y * dD + py
+    if re != 0.0 or rf != 1.0:  # ripple on the base sag z_b: z = z_b + a sin(w z_b), grad = rf grad z_b
+        gbx = gx / rf
+        gby = gy / rf
+        dz, dgx, dgy = rf * dz, rf * dgx - re * gbx * dz, rf * dgy - re * gby * dz
+    da = Lr[j, s, 0]
+    dh = Lr[j, s, 1]
+    if da != 0.0 or dh != 0.0:  # the ripple itself changes: amplitude a, period h (w = 2 pi / h)
+        a = ripple[s, 0]
+        w = 2.0 * math.pi / ripple[s, 1]
+        dw = -w * dh / ripple[s, 1]
+        sn = math.sin(w * zb)
+        cs_ = math.cos(w * zb)
+        f = 1.0 + a * w * cs_
+        gbx = gx / f
+        gby = gy / f
+        dz += sn * da + a * cs_ * zb * dw
+        df = w * cs_ * da + (a * cs_ - a * w * sn * zb) * dw  # change of rf at fixed zb
+        dgx += gbx * df
+        dgy += gby * df
+    return dz, dgx, dgy
 
 
 @nb.njit(cache=True, fastmath=_FM)
 def _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
-                     dox, doy, doz, ddx, ddy, ddz):
+                     dox, doy, doz, ddx, ddy, ddz, dsurf, dgxp, dgyp, dmu):
     """Tangent (d origin, d direction) of the ray leaving a surface, from the tangent of
     the incoming ray (origin o, direction d; first-order forward differentiation of the
-    intersection o + t d on the sag and of the vector Snell's law at the found point)."""
+    intersection o + t d on the sag and of the vector Snell's law at the found point).
+    dsurf, dgxp, dgyp: change of the surface height (vertex and sag) and of its gradient
+    at the fixed point along the direction; dmu: change of the index ratio (zero for
+    directions that move only the ray)."""
     ax = dox + t * ddx
     ay = doy + t * ddy
     az = doz + t * ddz
-    dt = -(az - gx * ax - gy * ay) / fp  # the intersection stays on the surface
+    dt = -(az - dsurf - gx * ax - gy * ay) / fp  # the intersection stays on the (moved) surface
     px = ax + dt * dx
     py = ay + dt * dy
     pz = az + dt * dz
-    dgx = hxx * px + hxy * py
-    dgy = hxy * px + hyy * py
+    dgx = hxx * px + hxy * py + dgxp
+    dgy = hxy * px + hyy * py + dgyp
     dinv = -inv * inv * inv * (gx * dgx + gy * dgy)
     dnx = -dgx * inv - gx * dinv
     dny = -dgy * inv - gy * dinv
     dnz = dinv
     dci = dnx * dx + dny * dy + dnz * dz + nx * ddx + ny * ddy + nz * ddz
-    dg = mu * mu * ci * dci / sk - mu * dci
-    return (px, py, pz, mu * ddx + dg * nx + g * dnx, mu * ddy + dg * ny + g * dny,
-            mu * ddz + dg * nz + g * dnz)
+    # g = sqrt(1 - mu^2 (1 - ci^2)) - mu ci
+    dg = (mu * mu * ci * dci - mu * dmu * (1.0 - ci * ci)) / sk - dmu * ci - mu * dci
+    return (px, py, pz, dmu * dx + mu * ddx + dg * nx + g * dnx, dmu * dy + mu * ddy + dg * ny + g * dny,
+            dmu * dz + mu * ddz + dg * nz + g * dnz)
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan):
+def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, m0, lt):
     """Trace one ray (lens frame) through both surfaces. Returns the exit ray and status.
 
     tan (m, 6): tangents (d origin, d direction) of the entering ray along m directions,
-    replaced in place by those of the exit ray (meaningful when the status is OK).
+    replaced in place by those of the exit ray (meaningful when the status is OK). Rows
+    m0.. are lens tangents j = row - m0 when lt = (Lc, Lk, La, Lp, Lr, Lzv, Ln): the
+    lens's kernel arrays change by row j of each (curvature, conic, aspheric, polynomial,
+    ripple, vertex z, index). lt = None (no lens tangents) compiles without that code.
     """
     n_in = 1.0
     for s in range(2):
@@ -238,7 +316,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
         for _ in range(40):  # _NEWTON_MAXIT
             x = ox + t * dx
             y = oy + t * dy
-            z, gx, gy, _, _, _, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, False)
+            z, gx, gy, _, _, _, _, _, _, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, False)
             if not good:
                 break
             f = oz + t * dz - zv[s] - z
@@ -254,7 +332,7 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
             return ox, oy, oz, dx, dy, dz, 1
         x = ox + t * dx
         y = oy + t * dy
-        z, gx, gy, hxx, hxy, hyy, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, True)
+        z, gx, gy, hxx, hxy, hyy, rf, re, zb, good = _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, True)
         if not good:
             return ox, oy, oz, dx, dy, dz, 1
         if x * x + y * y > ap_r * ap_r:
@@ -273,9 +351,21 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
         sk = math.sqrt(kk)
         g = sk - mu * ci
         for j in range(tan.shape[0]):
+            dsurf = 0.0
+            dgxp = 0.0
+            dgyp = 0.0
+            dmu = 0.0
+            if lt is not None:
+                if j >= m0:
+                    L = j - m0
+                    dsurf, dgxp, dgyp = _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, lt[0], lt[1], lt[2],
+                                                     lt[3], lt[4], L)
+                    dsurf += lt[5][L, s]
+                    # mu = 1 / n entering the glass, n leaving it
+                    dmu = -lt[6][L] / (n_glass * n_glass) if s == 0 else lt[6][L]
             (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
                 t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
-                tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5])
+                tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5], dsurf, dgxp, dgyp, dmu)
         ox = x
         oy = y
         oz = zv[s] + z
@@ -308,14 +398,17 @@ def _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN):
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _trace_one(u, v, R, t, dT, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, dout):
+def _trace_one(u, v, R, t, dT, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
+               tan, dout):
     """Trace the beam ray with transverse coordinates (u, v) for one pose (R, t).
 
     Returns sensor-plane x, y, direction L, M, N (in {S}) and status. dT (m, 3, 4): the
-    derivatives of [R | t] along m pose directions; tan (2 + m, 6): scratch; dout
-    (2 + m, 4) receives d(x, y, L/N, M/N) along u, v and each pose direction (the beam
-    ray fixed in {S}).
+    derivatives of [R | t] along m pose directions; lt: the lens tangents (Lc, Lk, La,
+    Lp, Lzv, Ln) of ``_trace_lens`` (l rows); tan (2 + m + l, 6): scratch; dout
+    (2 + m + l, 4) receives d(x, y, L/N, M/N) along u, v, each pose direction and each
+    lens tangent (the beam ray fixed in {S}).
     """
+    m0 = 2 + dT.shape[0]
     # ray in {S}
     inv = 1.0 / math.sqrt(1.0 + bsx * bsx + bsy * bsy)
     dSx = bsx * inv
@@ -335,6 +428,9 @@ def _trace_one(u, v, R, t, dT, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly,
             tan[j, 3] = 0.0
             tan[j, 4] = 0.0
             tan[j, 5] = 0.0
+        elif j >= m0:  # a lens tangent leaves the entering ray unchanged
+            for e in range(6):
+                tan[j, e] = 0.0
         else:
             D = dT[j - 2]
             a0, a1, a2 = _rotate_t(D, qx, qy, qz)
@@ -344,7 +440,7 @@ def _trace_one(u, v, R, t, dT, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly,
             tan[j, 2] = a2 - b2
             tan[j, 3], tan[j, 4], tan[j, 5] = _rotate_t(D, dSx, dSy, dSz)
     ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
-                                             n_glass, tan)
+                                             n_glass, tan, m0, lt)
     if st != 0:
         return 0.0, 0.0, 0.0, 0.0, 1.0, st
     # back to {S}
@@ -359,7 +455,7 @@ def _trace_one(u, v, R, t, dT, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly,
     for j in range(tan.shape[0]):
         dpx, dpy, dpz = _rotate(R, tan[j, 0], tan[j, 1], tan[j, 2])
         dL, dM, dN = _rotate(R, tan[j, 3], tan[j, 4], tan[j, 5])
-        if j >= 2:  # the pose moves the exit ray too: dR o + dt, dR d
+        if 2 <= j < m0:  # the pose moves the exit ray too: dR o + dt, dR d
             D = dT[j - 2]
             a0, a1, a2 = _rotate(D, ox, oy, oz)
             dpx += a0 + D[0, 3]
@@ -377,20 +473,20 @@ _CHUNK = 64  # rays per parallel work item (one scratch allocation each)
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
-def _trace_grid(uv, Rs, ts, dTs, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
+def _trace_grid(uv, Rs, ts, dTs, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
                 out, deriv, status):
-    """Trace rays uv (P, N, 2) at P poses; deriv (P, N, 2 + m, 4) receives d(x, y, L/N, M/N)
-    along u, v and the m pose directions dTs (P, m, 3, 4)."""
+    """Trace rays uv (P, N, 2) at P poses; deriv (P, N, 2 + m + l, 4) receives d(x, y, L/N, M/N)
+    along u, v, the m pose directions dTs (P, m, 3, 4) and the l lens tangents lt."""
     n_p = Rs.shape[0]
     n_r = uv.shape[1]
-    m = 2 + dTs.shape[1]
+    m = 2 + dTs.shape[1] + (0 if lt is None else lt[6].shape[0])
     total = n_p * n_r
     for chunk in nb.prange((total + _CHUNK - 1) // _CHUNK):
         tan = np.empty((m, 6))
         for idx in range(chunk * _CHUNK, min(total, (chunk + 1) * _CHUNK)):
             p = idx // n_r
             i = idx - p * n_r
-            x, y, L, M, N, st = _trace_one(uv[p, i, 0], uv[p, i, 1], Rs[p], ts[p], dTs[p], z0, bx, by, bsx, bsy,
+            x, y, L, M, N, st = _trace_one(uv[p, i, 0], uv[p, i, 1], Rs[p], ts[p], dTs[p], lt, z0, bx, by, bsx, bsy,
                                            c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, deriv[p, i])
             out[p, i, 0] = x
             out[p, i, 1] = y
@@ -403,8 +499,8 @@ def _trace_grid(uv, Rs, ts, dTs, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, pol
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _aim_one(p, i, targets, u0, Rs, ts, no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
-             n_glass, tol, maxit, out, status, counts, tan, d):
+def _aim_one(p, i, targets, u0, Rs, ts, no_pose, no_lens, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple,
+             zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d):
     """Aim the ray of target i at pose p (``_aim``); tan, d: scratch."""
     u = u0[p, i, 0]
     v = u0[p, i, 1]
@@ -416,8 +512,8 @@ def _aim_one(p, i, targets, u0, Rs, ts, no_pose, z0, bx, by, bsx, bsy, c, k, alp
     sy = 0.0
     det = 0.0
     for it in range(maxit):
-        x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
-                                       poly, ripple, zv, ap_r, n_glass, tan, d)
+        x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], no_pose, no_lens, z0, bx, by, bsx, bsy, c, k, alpha,
+                                       n_alpha, poly, ripple, zv, ap_r, n_glass, tan, d)
         traced += 1
         if s0 != 0:
             st = s0
@@ -471,8 +567,8 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
         tan = np.empty((2, 6))
         d = np.empty((2, 4))
         for idx in range(chunk * _CHUNK, min(total, (chunk + 1) * _CHUNK)):
-            _aim_one(idx // n_t, idx % n_t, targets, u0, Rs, ts, no_pose, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
-                     poly, ripple, zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d)
+            _aim_one(idx // n_t, idx % n_t, targets, u0, Rs, ts, no_pose, None, z0, bx, by, bsx, bsy, c, k, alpha,
+                     n_alpha, poly, ripple, zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d)
 
 
 # ----------------------------------------------------------------------------- Python API
@@ -486,7 +582,8 @@ class TraceResult:
     d(x, y, L/N, M/N) / d(u, v) of the beam-to-sensor map (rows x, y in mm/mm, slopes
     in rad/mm); pose_derivatives: (P, N, 4, 6) d(x, y, L/N, M/N) / d(pose) with the
     beam ray fixed (per mm of tx, ty, tz and per rad of rx, ry, rz; DESIGN's pose
-    vector), when asked for, else None. Derivatives are zero where status is not OK.
+    vector), when asked for, else None; lens_derivatives: (P, N, 4, l) along the l lens
+    tangents asked for, else None. Derivatives are zero where status is not OK.
     """
 
     xy: np.ndarray
@@ -494,6 +591,7 @@ class TraceResult:
     status: np.ndarray
     derivatives: np.ndarray
     pose_derivatives: np.ndarray | None = None
+    lens_derivatives: np.ndarray | None = None
 
     @property
     def slopes(self) -> np.ndarray:
@@ -535,12 +633,63 @@ def _kernel_args(kern: LensKernel):
             _arr(kern.ripple), _arr(kern.zv), float(kern.ap_r), float(kern.n))
 
 
+@dataclass(frozen=True)
+class LensTangents:
+    """l directions of change of a packed lens (``LensKernel``), one row each: curvature
+    dc (l, 2), conic dk (l, 2), aspheric dalpha (l, 2, <= 8), polynomial dpoly (l, 2, D+1, D+1),
+    layer ripple dripple (l, 2, 2) (amplitude, period), vertex z dzv (l, 2) and index dn
+    (l,). The clear aperture is held (it only clips)."""
+
+    dc: np.ndarray
+    dk: np.ndarray
+    dalpha: np.ndarray
+    dpoly: np.ndarray
+    dripple: np.ndarray
+    dzv: np.ndarray
+    dn: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return self.dn.shape[0]
+
+    def arrays(self) -> tuple:
+        return (_arr(self.dc), _arr(self.dk), _arr(self.dalpha), _arr(self.dpoly), _arr(self.dripple), _arr(self.dzv),
+                _arr(self.dn))
+
+
+_NO_TANGENTS = LensTangents(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2, 8)), np.zeros((0, 2, 1, 1)),
+                            np.zeros((0, 2, 2)), np.zeros((0, 2)), np.zeros(0))
+
+
+def kernel_tangents(plus: list, minus: list, step) -> LensTangents:
+    """Central differences (K+ - K-) / (2 step) of packed lenses (``LensKernel``), one
+    direction per pair (step: one for all, or one per pair): the lens tangents of a
+    parameterised lens (exact for the parts linear in the parameters; the packing is
+    cheap, no ray is traced). A ripple-free lens has no ripple tangent (its period is
+    then meaningless)."""
+    deg = max((k.poly.shape[1] for k in [*plus, *minus]), default=1)
+    pad = lambda kk: np.pad(kk.poly, ((0, 0), (0, deg - kk.poly.shape[1]), (0, deg - kk.poly.shape[2])))
+    rows = []
+    steps = np.broadcast_to(np.asarray(step, dtype=float), (len(plus),))
+    for kp, km, h in zip(plus, minus, steps):
+        d = lambda a, b: (np.asarray(a, float) - np.asarray(b, float)) / (2.0 * h)
+        rip = np.where((kp.ripple[:, :1] != 0) | (km.ripple[:, :1] != 0), d(kp.ripple, km.ripple), 0.0)
+        rows.append((d(kp.c, km.c), d(kp.k, km.k), d(kp.alpha, km.alpha), d(pad(kp), pad(km)), rip,
+                     d(kp.zv, km.zv), d(kp.n, km.n)))
+    if not rows:
+        return _NO_TANGENTS
+    t = [np.stack([r[i] for r in rows]) for i in range(7)]
+    used = np.flatnonzero(np.any(t[2] != 0, axis=(0, 1)))  # aspheric orders any tangent moves
+    t[2] = np.ascontiguousarray(t[2][..., :used.max() + 1 if used.size else 0])
+    return LensTangents(*t)
+
+
 def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None,
-               pose_derivatives: bool = False) -> TraceResult:
+               pose_derivatives: bool = False, lens_tangents: LensTangents | None = None) -> TraceResult:
     """Trace beam rays with transverse coordinates uv (mm, relative to the beam centre;
     (N, 2) for every pose, or (P, N, 2) per pose) through the lens at each pose (P, 6)
     to the sensor plane, with the derivatives of where they land and of their slopes
-    along u and v, and along the pose when ``pose_derivatives``.
+    along u and v, along the pose when ``pose_derivatives`` and along each lens tangent.
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
@@ -548,14 +697,17 @@ def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel
     uv = np.asarray(uv, dtype=float)
     uv = _arr(np.broadcast_to(uv if uv.ndim == 3 else np.atleast_2d(uv), (n_p,) + np.atleast_2d(uv).shape[-2:]))
     dT = _arr(pose_frame_derivatives(poses) if pose_derivatives else np.zeros((n_p, 0, 3, 4)))
-    m = 2 + dT.shape[1]
+    lt = lens_tangents
+    m = 2 + dT.shape[1] + (lt.size if lt is not None else 0)
     out = np.empty((n_p, uv.shape[1], 5))
     deriv = np.empty((n_p, uv.shape[1], m, 4))
     status = np.empty((n_p, uv.shape[1]), dtype=np.int8)
     with compile_notice():
-        _trace_grid(uv, Rs, ts, dT, *_beam_args(bench, lens), *_kernel_args(kern), out, deriv, status)
+        _trace_grid(uv, Rs, ts, dT, lt.arrays() if lt is not None else None, *_beam_args(bench, lens), *_kernel_args(kern), out, deriv, status)
     d = np.swapaxes(deriv, -1, -2)  # (P, N, 4, m)
-    return TraceResult(out[..., :2], out[..., 2:5], status, d[..., :2], d[..., 2:] if pose_derivatives else None)
+    m0 = 2 + dT.shape[1]
+    return TraceResult(out[..., :2], out[..., 2:5], status, d[..., :2], d[..., 2:m0] if pose_derivatives else None,
+                       d[..., m0:] if lens_tangents is not None else None)
 
 
 def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKernel | None = None,
