@@ -269,13 +269,16 @@ def _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, Lc, Lk, La, Lp, Lr, 
 
 @nb.njit(cache=True, fastmath=_FM)
 def _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
-                     dox, doy, doz, ddx, ddy, ddz, dsurf, dgxp, dgyp, dmu):
+                     dox, doy, doz, ddx, ddy, ddz, lens):
     """Tangent (d origin, d direction) of the ray leaving a surface, from the tangent of
     the incoming ray (origin o, direction d; first-order forward differentiation of the
     intersection o + t d on the sag and of the vector Snell's law at the found point).
-    dsurf, dgxp, dgyp: change of the surface height (vertex and sag) and of its gradient
-    at the fixed point along the direction; dmu: change of the index ratio (zero for
-    directions that move only the ray)."""
+    lens: None for a direction that moves only the ray, else (dsurf, dgxp, dgyp, dmu): the
+    change of the surface height (vertex and sag) and of its gradient at the fixed point,
+    and of the index ratio (None compiles without those terms)."""
+    dsurf = dgxp = dgyp = dmu = 0.0
+    if lens is not None:
+        dsurf, dgxp, dgyp, dmu = lens
     ax = dox + t * ddx
     ay = doy + t * ddy
     az = doz + t * ddz
@@ -283,14 +286,20 @@ def _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, 
     px = ax + dt * dx
     py = ay + dt * dy
     pz = az + dt * dz
-    dgx = hxx * px + hxy * py + dgxp
-    dgy = hxy * px + hyy * py + dgyp
+    dgx = hxx * px + hxy * py
+    dgy = hxy * px + hyy * py
+    if lens is not None:
+        dgx += dgxp
+        dgy += dgyp
     dinv = -inv * inv * inv * (gx * dgx + gy * dgy)
     dnx = -dgx * inv - gx * dinv
     dny = -dgy * inv - gy * dinv
     dnz = dinv
     dci = dnx * dx + dny * dy + dnz * dz + nx * ddx + ny * ddy + nz * ddz
     # g = sqrt(1 - mu^2 (1 - ci^2)) - mu ci
+    if lens is None:
+        dg = mu * mu * ci * dci / sk - mu * dci
+        return (px, py, pz, mu * ddx + dg * nx + g * dnx, mu * ddy + dg * ny + g * dny, mu * ddz + dg * nz + g * dnz)
     dg = (mu * mu * ci * dci - mu * dmu * (1.0 - ci * ci)) / sk - dmu * ci - mu * dci
     return (px, py, pz, dmu * dx + mu * ddx + dg * nx + g * dnx, dmu * dy + mu * ddy + dg * ny + g * dny,
             dmu * dz + mu * ddz + dg * nz + g * dnz)
@@ -351,21 +360,20 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
         sk = math.sqrt(kk)
         g = sk - mu * ci
         for j in range(tan.shape[0]):
-            dsurf = 0.0
-            dgxp = 0.0
-            dgyp = 0.0
-            dmu = 0.0
-            if lt is not None:
-                if j >= m0:
-                    L = j - m0
-                    dsurf, dgxp, dgyp = _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, lt[0], lt[1], lt[2],
-                                                     lt[3], lt[4], L)
-                    dsurf += lt[5][L, s]
-                    # mu = 1 / n entering the glass, n leaving it
-                    dmu = -lt[6][L] / (n_glass * n_glass) if s == 0 else lt[6][L]
-            (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
-                t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
-                tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5], dsurf, dgxp, dgyp, dmu)
+            if lt is not None and j >= m0:
+                L = j - m0
+                dsurf, dgxp, dgyp = _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, lt[0], lt[1], lt[2],
+                                                 lt[3], lt[4], L)
+                # mu = 1 / n entering the glass, n leaving it
+                dmu = -lt[6][L] / (n_glass * n_glass) if s == 0 else lt[6][L]
+                (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
+                    t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
+                    tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5],
+                    (dsurf + lt[5][L, s], dgxp, dgyp, dmu))
+            else:
+                (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
+                    t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
+                    tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5], None)
         ox = x
         oy = y
         oz = zv[s] + z
