@@ -135,7 +135,7 @@ def test_lens_derivatives_match_finite_differences(case):
     steps = np.array([1e-4, 1e-5, 1e-6, 1e-4, 1e-6, 1e-6, 1e-6, 1e-6, 1e-6])
     n = len(steps)
     lt = kernel_tangents([lens_kernel(_perturbed(lens, j, steps[j]), wl) for j in range(n)],
-                         [lens_kernel(_perturbed(lens, j, -steps[j]), wl) for j in range(n)], steps)
+                         [lens_kernel(_perturbed(lens, j, -steps[j]), wl) for j in range(n)], 2 * steps)
     res = trace_rays(bench, lens, POSES, uv, lens_tangents=lt)
     assert np.all(res.status == OK) and res.lens_derivatives.shape == (2, len(uv), 4, n)
     values = lambda r: np.concatenate([r.xy, r.slopes], axis=-1)

@@ -669,18 +669,19 @@ _NO_TANGENTS = LensTangents(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2, 
                             np.zeros((0, 2, 2)), np.zeros((0, 2)), np.zeros(0))
 
 
-def kernel_tangents(plus: list, minus: list, step) -> LensTangents:
-    """Central differences (K+ - K-) / (2 step) of packed lenses (``LensKernel``), one
-    direction per pair (step: one for all, or one per pair): the lens tangents of a
-    parameterised lens (exact for the parts linear in the parameters; the packing is
+def kernel_tangents(plus: list, minus: list, spacing) -> LensTangents:
+    """Differences (K+ - K-) / spacing of packed lenses (``LensKernel``), one direction per
+    pair (spacing: the parameter distance between the two, one for all or one per pair;
+    2 h for central differences, h for forward ones with K- the base): the lens tangents of
+    a parameterised lens (exact for the parts linear in the parameters; the packing is
     cheap, no ray is traced). A ripple-free lens has no ripple tangent (its period is
     then meaningless)."""
     deg = max((k.poly.shape[1] for k in [*plus, *minus]), default=1)
     pad = lambda kk: np.pad(kk.poly, ((0, 0), (0, deg - kk.poly.shape[1]), (0, deg - kk.poly.shape[2])))
     rows = []
-    steps = np.broadcast_to(np.asarray(step, dtype=float), (len(plus),))
-    for kp, km, h in zip(plus, minus, steps):
-        d = lambda a, b: (np.asarray(a, float) - np.asarray(b, float)) / (2.0 * h)
+    spacings = np.broadcast_to(np.asarray(spacing, dtype=float), (len(plus),))
+    for kp, km, h in zip(plus, minus, spacings):
+        d = lambda a, b: (np.asarray(a, float) - np.asarray(b, float)) / h
         rip = np.where((kp.ripple[:, :1] != 0) | (km.ripple[:, :1] != 0), d(kp.ripple, km.ripple), 0.0)
         rows.append((d(kp.c, km.c), d(kp.k, km.k), d(kp.alpha, km.alpha), d(pad(kp), pad(km)), rip,
                      d(kp.zv, km.zv), d(kp.n, km.n)))
