@@ -396,6 +396,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     if scheduler is None and workers == 0:
         yield None
         return
+    import dask
     from distributed import Client, LocalCluster
 
     cluster = None
@@ -406,10 +407,18 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
             raise ConfigError(f"scheduler: cannot reach Dask scheduler {scheduler!r} ({e}); check the address") from None
     else:
         n = int(workers) if workers is not None else (os.cpu_count() or 1)
-        cluster = LocalCluster(
-            n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=":0",
-            env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
-        )
+        # distributed starts workers with MALLOC_TRIM_THRESHOLD_=65536 (to hand memory back to
+        # the OS); setting it also switches off glibc's adaptive mmap threshold, so every large
+        # temporary array of a trial is mmap'd, faulted in and unmapped again. Measured on the
+        # joint study (2 cores): 1.8 s per lens in a worker against 1.2 s in process, a third of
+        # it system time. Trials are short-lived and small: keep glibc's defaults.
+        environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+                   if k != "MALLOC_TRIM_THRESHOLD_"}
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+            cluster = LocalCluster(
+                n_workers=max(1, n), threads_per_worker=1, processes=True, dashboard_address=":0",
+                env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
+            )
         client = Client(cluster)
     try:
         if cluster is not None:
