@@ -316,35 +316,41 @@ class ForwardModel:
         shifts = np.array([[0, 0], [1, 0], [0, 1]]) * _UV_STEP
         t = trace_rays(self.bench, self.lens, np.tile(x, (3, 1)), (uv[None] + shifts[:, None, None]).reshape(-1, N, 2),
                        kernel=self.kernel, pose_derivatives=True, lens_tangents=lens_tangents)
-        parts = [t.derivatives, t.pose_derivatives] + ([t.lens_derivatives] if lens_tangents is not None else [])
-        Ds = np.concatenate(parts, axis=-1)
+        Ds = t.all_derivatives  # columns u, v, the pose directions, the lens tangents
         nq = Ds.shape[-1] - 2  # directions q: pose, then lens
         Ds = Ds.reshape(3, P, N, 4, nq + 2)
         ok = np.all((t.status == OK).reshape(3, P, N), axis=0)
-        D = Ds[0]
-        J = D[..., :2, :2]
-        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        # rows X, Y, sx, sy of every derivative, each (P, N, 2 + nq): along u, v, then each direction
+        (X, Y, SX, SY), (Xu, Yu), (Xv, Yv) = (Ds[0, ..., r, :] for r in range(4)), (
+            Ds[1, ..., r, :] for r in range(2)), (Ds[2, ..., r, :] for r in range(2))
+        j00, j01, j10, j11 = X[..., 0], X[..., 1], Y[..., 0], Y[..., 1]  # J = d(X, Y)/d(u, v)
+        det = j00 * j11 - j01 * j10
         det = np.where(ok & (det != 0), det, 1.0)
-        Jinv = np.stack([np.stack([J[..., 1, 1], -J[..., 0, 1]], -1), np.stack([-J[..., 1, 0], J[..., 0, 0]], -1)],
-                        -2) / det[..., None, None]
-        du = -Jinv @ D[..., :2, 2:]  # (P, N, 2, nq): the aimed (u, v) along each direction
-        dsq = D[..., 2:, 2:] + D[..., 2:, :2] @ du  # (P, N, 2, nq)
-        # second derivatives of (X, Y): H[c] = d/d(u, v)_c of every first derivative (P, N, 2, 2 + nq)
-        H = [(Ds[1 + c, ..., :2, :] - D[..., :2, :]) / _UV_STEP for c in range(2)]
-        # total derivative of J's column c along each direction, on the aimed path
-        dJ = np.stack([H[c][..., 2:] + H[0][..., c, None] * du[..., None, 0, :]
-                       + H[1][..., c, None] * du[..., None, 1, :] for c in range(2)], axis=-2)  # (P, N, 2, 2, nq)
-        ddet = (dJ[..., 0, 0, :] * J[..., 1, 1, None] + J[..., 0, 0, None] * dJ[..., 1, 1, :]
-                - dJ[..., 0, 1, :] * J[..., 1, 0, None] - J[..., 0, 1, None] * dJ[..., 1, 0, :])
+        # the aimed (u, v) along each direction q (P, N, nq): du/dq = -J^-1 dX/dq
+        Xq, Yq = X[..., 2:], Y[..., 2:]
+        du = (-j11[..., None] * Xq + j01[..., None] * Yq) / det[..., None]
+        dv = (j10[..., None] * Xq - j00[..., None] * Yq) / det[..., None]
+        dsx = SX[..., 2:] + SX[..., :1] * du + SX[..., 1:2] * dv
+        dsy = SY[..., 2:] + SY[..., :1] * du + SY[..., 1:2] * dv
+        # second derivatives of (X, Y) by forward differences in u and v of every first derivative;
+        # total derivative of each J entry along q on the aimed path: d/dq (dX/dc) = d/dc (dX/dq)
+        HX = [(Xu - X) / _UV_STEP, (Xv - X) / _UV_STEP]  # d/du, d/dv of every derivative of X
+        HY = [(Yu - Y) / _UV_STEP, (Yv - Y) / _UV_STEP]
+
+        def total(H, c):  # d/dq of dF/d(u, v)_c
+            return H[c][..., 2:] + H[0][..., c, None] * du + H[1][..., c, None] * dv
+
+        ddet = (total(HX, 0) * j11[..., None] + j00[..., None] * total(HY, 1)
+                - total(HX, 1) * j10[..., None] - j01[..., None] * total(HY, 0))
         w = 0.5 * self.bench.laser.beam_diameter_mm
         # I = I_beam(u) / |det|: dI / I = -4 u.du / w^2 - d det / det
         irr = np.where(np.isfinite(a["irr"]), a["irr"], 0.0)  # a failed ray has no weight (nor derivative)
-        dirr = irr[..., None] * (-4.0 / (w * w) * np.einsum("pnk,pnkj->pnj", uv, du) - ddet / det[..., None])
+        dirr = irr[..., None] * (-4.0 / (w * w) * (uv[..., :1] * du + uv[..., 1:] * dv) - ddet / det[..., None])
         _, n_l, q = a["st"].shape
         good = (a["st"] == OK) & ok.reshape(P, n_l, q)
         wi = self._weights(a)
         dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, nq), 0.0) * self.quad_weights[:, None]
-        dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, nq), 0.0)
+        dsq = np.where(good[..., None, None], np.stack([dsx, dsy], axis=-2).reshape(P, n_l, q, 2, nq), 0.0)
         # complex step: centroid_slopes is analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly
         eps = 1e-30
         sq_c = a["sq"][:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, nq, n, q, 2)

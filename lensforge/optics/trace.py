@@ -600,6 +600,7 @@ class TraceResult:
     derivatives: np.ndarray
     pose_derivatives: np.ndarray | None = None
     lens_derivatives: np.ndarray | None = None
+    all_derivatives: np.ndarray | None = None  # (P, N, 4, 2 + 6 + l): the three above side by side
 
     @property
     def slopes(self) -> np.ndarray:
@@ -716,7 +717,7 @@ def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel
     d = np.swapaxes(deriv, -1, -2)  # (P, N, 4, m)
     m0 = 2 + dT.shape[1]
     return TraceResult(out[..., :2], out[..., 2:5], status, d[..., :2], d[..., 2:m0] if pose_derivatives else None,
-                       d[..., m0:] if lens_tangents is not None else None)
+                       d[..., m0:] if lens_tangents is not None else None, d)
 
 
 def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKernel | None = None,
