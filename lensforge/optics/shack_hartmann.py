@@ -35,7 +35,7 @@ from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
 from .sensor_range import SensorRange, centroid_slopes, quadrature_rule, range_use, summarize_range, window_gain
-from .trace import CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, lens_kernel, trace_rays
+from .trace import AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, lens_kernel, trace_rays
 from .zernike import modes_up_to_order, zernike_gradient
 
 # step (mm) of the forward differences in the beam coordinates that give the ray map's second
@@ -305,17 +305,40 @@ class ForwardModel:
         with d/dq (dX/du) = d/du (dX/dq) (symmetry of second derivatives), so two traced
         copies of each aimed ray give every direction. The centroid's
         derivative is exact by a complex step through ``centroid_slopes``; the Zernike fit
-        is linear. uv0 warm-starts the aim (e.g. the rays of a previous evaluation at x).
+        is linear. uv0: the rays aimed at x by a previous evaluation (used as they are when
+        every one still lands within ``AIM_TOL``, else the start of a new aim).
         """
-        a = self._aim(poses, uv0, check_range)
-        res = self._zernike(a)
-        x, uv = a["poses"], a["uv"]
-        P, N = uv.shape[:2]
+        x = np.atleast_2d(np.asarray(poses, dtype=float))
+        if check_range:
+            check_pose_range(self.bench, x)
+        P, N = x.shape[0], self.targets.shape[0]
         # the aimed rays and, for the second derivatives, each displaced by _UV_STEP in u and in v:
         # one trace of 3 P poses, d(X, Y, sx, sy) along u, v, the six pose directions and the lens tangents
         shifts = np.array([[0, 0], [1, 0], [0, 1]]) * _UV_STEP
-        t = trace_rays(self.bench, self.lens, np.tile(x, (3, 1)), (uv[None] + shifts[:, None, None]).reshape(-1, N, 2),
-                       kernel=self.kernel, pose_derivatives=True, lens_tangents=lens_tangents)
+
+        def derivatives(uv):
+            return trace_rays(self.bench, self.lens, np.tile(x, (3, 1)),
+                              (uv[None] + shifts[:, None, None]).reshape(-1, N, 2), kernel=self.kernel,
+                              pose_derivatives=True, lens_tangents=lens_tangents)
+
+        t = None
+        if uv0 is not None:  # a previous evaluation's rays at x: the first trace checks they still land
+            uv = np.array(np.broadcast_to(uv0, (P, N, 2)), dtype=float)
+            t = derivatives(uv)
+            landed = (t.status[:P] == OK) & np.all(np.abs(t.xy[:P] - self.targets) < AIM_TOL, axis=-1)
+            if landed.all():
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    det = np.abs(np.linalg.det(t.derivatives[:P, :, :2, :]))
+                a = {"poses": x, "uv": uv, "sq": t.slopes[:P].reshape(P, -1, self.quad_weights.size, 2),
+                     "st": t.status[:P].reshape(P, -1, self.quad_weights.size), "irr": self._beam(uv) / det,
+                     "n": P * N}
+            else:
+                t = None
+        if t is None:
+            a = self._aim(x, uv0, False)
+            uv = a["uv"]
+            t = derivatives(uv)
+        res = self._zernike(a)
         Ds = t.all_derivatives  # columns u, v, the pose directions, the lens tangents
         nq = Ds.shape[-1] - 2  # directions q: pose, then lens
         Ds = Ds.reshape(3, P, N, 4, nq + 2)

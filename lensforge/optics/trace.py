@@ -36,7 +36,7 @@ from .pose import rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
-    "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "TraceResult",
+    "AIM_TOL", "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "TraceResult",
 ]
 
 OK, MISSED, TIR, CLIPPED, BACKWARD, NOT_AIMED = 0, 1, 2, 3, 4, 5
@@ -45,6 +45,7 @@ STATUS_NAMES = {OK: "ok", MISSED: "missed surface", TIR: "total internal reflect
                 NOT_AIMED: "ray aiming failed"}
 
 _NEWTON_MAXIT = 40
+AIM_TOL = 1e-10  # mm: an aimed ray lands this close to its target (per axis); see _aim
 # Newton on the ray parameter converges quadratically: after a step of size d the error
 # is ~ (f''/2f') d^2 < 1e-16 mm for d < 1e-8 mm, so stopping there loses nothing.
 _NEWTON_TOL = 1e-8  # mm
@@ -721,7 +722,7 @@ def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel
 
 
 def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKernel | None = None,
-             tol: float = 1e-10, maxit: int = 30):
+             tol: float = AIM_TOL, maxit: int = 30):
     """Aim one beam ray onto each target point (lenslet centre) of the sensor plane.
 
     Returns (uv, slopes, jac_det, status, n_traced): beam coordinates (P, T, 2) of
