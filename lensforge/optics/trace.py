@@ -203,25 +203,30 @@ def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, Lc, Lk, La, Lp, Lr, j):
+def _conic_sensitivity(c, k, s, r2):
+    """(dz/dc, dz/dk, dD/dc, dD/dk) of the conic base at r^2 (D: its radial gradient
+    factor, grad = (x, y) D): the same for every lens tangent at a point."""
+    cs = c[s]
+    arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
+    root = math.sqrt(arg)
+    q = 1.0 + root
+    rc = -(1.0 + k[s]) * cs * r2 / root  # d root / dc
+    rk = -0.5 * cs * cs * r2 / root  # d root / dk
+    return (r2 / q - cs * r2 * rc / (q * q), -cs * r2 * rk / (q * q), 1.0 / root - cs * rc / arg, -cs * rk / arg)
+
+
+@nb.njit(cache=True, fastmath=_FM)
+def _sag_tangent(ripple, s, x, y, gx, gy, rf, re, zb, Lc, Lk, La, Lp, Lr, j, conic):
     """Change of the sag and of its gradient at the fixed point (x, y) of surface s along
     the lens tangent j (dc = Lc[j, s], dk = Lk[j, s], d alpha = La[j, s], d poly =
     Lp[j, s], d ripple (amplitude, period) = Lr[j, s]); gx, gy, rf, re, zb: the surface's
-    gradient, ripple factors and base sag there (``_sag``). Returns (dz, d dz/dx, d dz/dy)."""
+    gradient, ripple factors and base sag there (``_sag``); conic: ``_conic_sensitivity``
+    there. Returns (dz, d dz/dx, d dz/dy)."""
     r2 = x * x + y * y
-    dz = 0.0
-    dD = 0.0  # change of the radial factor D (grad = (x, y) D + poly gradient)
     dcs = Lc[j, s]
     dks = Lk[j, s]
-    if dcs != 0.0 or dks != 0.0:
-        cs = c[s]
-        arg = 1.0 - (1.0 + k[s]) * cs * cs * r2
-        root = math.sqrt(arg)
-        q = 1.0 + root
-        rc = -(1.0 + k[s]) * cs * r2 / root  # d root / dc
-        rk = -0.5 * cs * cs * r2 / root  # d root / dk
-        dz += (r2 / q - cs * r2 * rc / (q * q)) * dcs - cs * r2 * rk / (q * q) * dks
-        dD += (1.0 / root - cs * rc / arg) * dcs - cs * rk / arg * dks
+    dz = conic[0] * dcs + conic[1] * dks
+    dD = conic[2] * dcs + conic[3] * dks  # change of the radial factor D (grad = (x, y) D + poly gradient)
     za = 0.0
     da = 0.0
     for i in range(La.shape[2], 0, -1):
@@ -360,11 +365,14 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
             return ox, oy, oz, dx, dy, dz, 2
         sk = math.sqrt(kk)
         g = sk - mu * ci
+        conic = (0.0, 0.0, 0.0, 0.0)
+        if lt is not None:
+            conic = _conic_sensitivity(c, k, s, x * x + y * y)
         for j in range(tan.shape[0]):
             if lt is not None and j >= m0:
                 L = j - m0
-                dsurf, dgxp, dgyp = _sag_tangent(c, k, ripple, s, x, y, gx, gy, rf, re, zb, lt[0], lt[1], lt[2],
-                                                 lt[3], lt[4], L)
+                dsurf, dgxp, dgyp = _sag_tangent(ripple, s, x, y, gx, gy, rf, re, zb, lt[0], lt[1], lt[2],
+                                                 lt[3], lt[4], L, conic)
                 # mu = 1 / n entering the glass, n leaving it
                 dmu = -lt[6][L] / (n_glass * n_glass) if s == 0 else lt[6][L]
                 (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
