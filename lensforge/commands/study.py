@@ -107,7 +107,7 @@ def study_cmd(
     if calibration == "joint":
         j = s["joint"]
         if j["nees_dof"] is not None:
-            info(f"  joint: NEES/dof of Z {j['nees_dof']:.2f}, chi2 mismatch flagged in {j['mismatch_rate']:.0%} "
+            info(f"  joint: NEES/dof of Z {j['nees_dof']:.2f}, chi2 mismatch flagged in {j['mismatch_rate']:.1%} "
                  f"of lenses, median {j['n_identifiable_median']:g} identifiable lens directions")
         info("two-stage calibration on the same data:")
         _print_errors(d["two_stage_summary"])

@@ -113,6 +113,36 @@ def pose_frames(bench: Bench, poses) -> tuple[np.ndarray, np.ndarray]:
 # ----------------------------------------------------------------------------- kernels
 
 @nb.njit(cache=True, fastmath=_FM)
+def _poly(coef, x, y, hess):
+    """sum coef[p, q] x^p y^q (nested Horner) with its first and, when ``hess``, second
+    derivatives: (z, z_x, z_y, z_xx, z_xy, z_yy)."""
+    d1 = coef.shape[0]
+    pz = 0.0
+    px = 0.0
+    py = 0.0
+    pxx = 0.0
+    pxy = 0.0
+    pyy = 0.0
+    for p in range(d1 - 1, -1, -1):
+        r = 0.0
+        ry = 0.0
+        ryy = 0.0
+        for q in range(d1 - 1 - p, -1, -1):
+            if hess:
+                ryy = ryy * y + 2.0 * ry
+            ry = ry * y + r
+            r = r * y + coef[p, q]
+        if hess:
+            pxx = pxx * x + 2.0 * px
+            pxy = pxy * x + py
+            pyy = pyy * x + ryy
+        px = px * x + pz
+        pz = pz * x + r
+        py = py * x + ry
+    return pz, px, py, pxx, pxy, pyy
+
+
+@nb.njit(cache=True, fastmath=_FM)
 def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
     """(z, dz/dx, dz/dy, d2z/dx2, d2z/dxdy, d2z/dy2, rf, re, zb, ok) of surface s at (x, y);
     the second derivatives only when ``hess`` (else 0). zb is the base sag under the layer
@@ -153,30 +183,7 @@ def _sag(c, k, alpha, n_alpha, poly, ripple, s, x, y, hess):
         hxx = dr + 2.0 * x * x * ddr
         hxy = 2.0 * x * y * ddr
         hyy = dr + 2.0 * y * y * ddr
-    # polynomial sum poly[p, q] x^p y^q: nested Horner with first (and second) derivatives
-    d1 = poly.shape[1]
-    pz = 0.0
-    px = 0.0
-    py = 0.0
-    pxx = 0.0
-    pxy = 0.0
-    pyy = 0.0
-    for p in range(d1 - 1, -1, -1):
-        r = 0.0
-        ry = 0.0
-        ryy = 0.0
-        for q in range(d1 - 1 - p, -1, -1):
-            if hess:
-                ryy = ryy * y + 2.0 * ry
-            ry = ry * y + r
-            r = r * y + poly[s, p, q]
-        if hess:
-            pxx = pxx * x + 2.0 * px
-            pxy = pxy * x + py
-            pyy = pyy * x + ryy
-        px = px * x + pz
-        pz = pz * x + r
-        py = py * x + ry
+    pz, px, py, pxx, pxy, pyy = _poly(poly[s], x, y, hess)
     z += pz
     gx += px
     gy += py
@@ -235,19 +242,7 @@ def _sag_tangent(ripple, s, x, y, gx, gy, rf, re, zb, Lc, Lk, La, Lp, Lr, j, con
         za = (za + a) * r2
     dz += za
     dD += da
-    d1 = Lp.shape[2]
-    pz = 0.0
-    px = 0.0
-    py = 0.0
-    for p in range(d1 - 1, -1, -1):
-        r = 0.0
-        ry = 0.0
-        for q in range(d1 - 1 - p, -1, -1):
-            ry = ry * y + r
-            r = r * y + Lp[j, s, p, q]
-        px = px * x + pz
-        pz = pz * x + r
-        py = py * x + ry
+    pz, px, py, _, _, _ = _poly(Lp[j, s], x, y, False)
     dz += pz
     dgx = x * dD + px
     dgy = y * dD + py
