@@ -115,8 +115,9 @@ class JointCalibrationResult:
     known; theta_sigma: posterior 1-sigma of theta (prior is 1); identifiable: (k,)
     theta_sigma < 0.5 (the data at least halve the prior); chi2, dof, p_value: the
     model-mismatch test; mismatch: p_value < alpha; iterations, converged, n_traced
-    (poses traced); used: (n,) poses used (lit at the start; robot_errors has one row
-    per used pose); lens: the as-built lens of theta.
+    (poses traced); used: (n,) poses used (lit at the start and not darkened by a
+    descending step: a pose at the pupil's edge leaves the problem rather than block it;
+    robot_errors has one row per used pose); lens: the as-built lens of theta.
     """
 
     X: np.ndarray
@@ -194,6 +195,11 @@ class JointProblem:
         self._model = None
         self.Li = None
         self.n_traced = 0
+
+    def drop(self, keep) -> None:
+        """Keep only the poses ``keep`` (n,) of the problem."""
+        self.z, self.A = self.z[keep], self.A[keep]
+        self.n = int(np.sum(keep))
 
     def model(self, theta) -> ForwardModel:
         key = np.asarray(theta, float).tobytes()
@@ -391,6 +397,21 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             Xn, Zn = X @ pose_to_matrix(dg[:6]), Z @ pose_to_matrix(dg[6:12])
             thn, an = theta + dg[12:], a + da
             rn, litn, Bn, xn, uvn, zmn = pb.residuals(Xn, Zn, thn, an, uv0=uv)
+            if not litn.all() and litn.sum() >= 3 and (pb.cost(rn[litn], an[litn], thn)
+                                                        <= pb.cost(r[litn], a[litn], theta)):
+                # a step that descends on the poses it keeps lit but darkens others: those sit at
+                # the pupil's edge, and kept they would block every step (the fit stalled there);
+                # they leave the problem (``used``)
+                keep = litn
+                used[np.flatnonzero(used)[~keep]] = False
+                pb.drop(keep)
+                rn, an, Bn, xn, uvn, zmn = rn[keep], an[keep], Bn[keep], xn[keep], uvn[keep], zmn[keep]
+                r, a, B, x, uv, zm = r[keep], a[keep], B[keep], x[keep], uv[keep], zm[keep]
+                S, Jt = S[keep], Jt[keep]
+                n = int(keep.sum())
+                dof = n * pb.m - 12 - (0 if theta_prior else k)
+                cost, litn = pb.cost(r, a, theta), np.ones(n, bool)
+                fresh, prev_dec = False, np.inf
             cn = pb.cost(rn, an, thn) if litn.all() else np.inf
             if cn <= cost:
                 accepted = True
