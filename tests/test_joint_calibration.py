@@ -275,6 +275,42 @@ def test_reused_jacobians_reach_the_same_minimum(setup, param):
     assert abs(fast.chi2 - full.chi2) < 0.01 * np.sqrt(2 * full.dof)
 
 
+def test_a_pose_darkened_on_the_way_leaves_the_problem(setup, param, monkeypatch):
+    """A pose lit at the start that a descending step would darken (at the pupil's edge)
+    is dropped, and the fit ends where a fit without it from the start ends (within the
+    0.01-sigma stopping tolerance), instead of stalling at the start."""
+    from lensforge.calibration import joint as joint_mod
+
+    bench, _, scene, plan = setup
+    A_cmd = flange_pose(scene, plan, check_reach=False)
+    rng = np.random.default_rng(5)
+    theta = rng.standard_normal(param.k)
+    A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(A_cmd)))
+    z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
+    X0 = scene.X @ pose_to_matrix([0.3, -0.2, 0.25, 5e-3, -4e-3, 6e-3])
+    Z0 = scene.Z @ pose_to_matrix([-0.25, 0.3, 0.2, -6e-3, 5e-3, 4e-3])
+    kw = dict(T_SO_nominal=scene.T_SO_nominal, robot_cov=scene.noise.cov)
+    without = joint_calibrate(bench, param, z[1:], A_cmd[1:], X0=X0, Z0=Z0, **kw)
+
+    residuals = joint_mod.JointProblem.residuals
+
+    def edge(self, X, Z, theta, a, uv0=None):  # pose 0 goes dark once the state leaves the start
+        r, lit, B, x, uv, zm = residuals(self, X, Z, theta, a, uv0)
+        if uv0 is not None and self.n == len(plan):
+            lit = lit.copy()
+            lit[0] = False
+        return r, lit, B, x, uv, zm
+
+    monkeypatch.setattr(joint_mod.JointProblem, "residuals", edge)
+    res = joint_calibrate(bench, param, z, A_cmd, X0=X0, Z0=Z0, **kw)
+    assert res.converged and not res.used[0] and res.used[1:].all()
+    assert res.robot_errors.shape == (len(plan) - 1, 6) and res.dof == without.dof
+    sd = np.sqrt(np.diag(without.cov))
+    d = np.r_[_err(without.X, res.X), _err(without.Z, res.Z), res.theta - without.theta]
+    assert np.max(np.abs(d) / sd) < 0.05
+    assert not res.mismatch
+
+
 def test_study_takes_a_pose_plan(tmp_path):
     """verify(plan=...) runs the given poses (they are the hashed plan, n_poses follows);
     `study --pose-plan` rejects a malformed plan file in one line, exit 2."""

@@ -18,7 +18,8 @@ units of the tolerances.
 
 Per pose the result reports the robot-error chi2 a_i^T Sigma_A^-1 a_i (6 DOF, in the
 plot's hand-eye row) and the whitened Zernike residual chi2 / m (the lens-fit row).
-Poses the start leaves unlit are rejected; one robust outlier pass (Bonferroni chi2
+Poses the start leaves unlit, or that the fit's descent darkens at the pupil's edge,
+are rejected; one robust outlier pass (Bonferroni chi2
 quantile on the Zernike residual, scaled by the median over its expectation, as the
 two-stage test) rejects poses and refits once.
 """
@@ -136,7 +137,8 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
                                            robot_cov, alpha=outlier_alpha, params=[param])
         kept = np.flatnonzero(keep)
         for k in kept[~res.used]:
-            rejected.append({"pose": str(ids[k]), "reason": "unlit at the start of the joint fit (left out)"})
+            rejected.append({"pose": str(ids[k]), "reason": "unlit in the joint fit: at its start, or at the "
+                             "pupil's edge on its way to the minimum (left out)"})
         keep[kept[~res.used]] = False
         used_idx = np.flatnonzero(keep)
         zc, rc = _per_pose(bench, param, res, data.z[used_idx], data.A[used_idx], Tn, robot_cov)
