@@ -148,3 +148,15 @@ def test_cli_evaluate_json_reports_observability(tmp_path):
         assert all(obs[d] for d in ("tx", "ty", "tz", "rx", "ry"))
         assert ("rz" in rows[name]["unobservable"]) is (not rz)
         assert len(rows[name]["unobservable_directions"]) == (0 if rz else 1)
+
+
+def test_no_poses_give_empty_results(bench):
+    # a study lens whose every pose is unlit estimates nothing: the model and its Jacobian
+    # take zero poses (the joint budget with loose tolerances found this)
+    model = ForwardModel(bench, lf.paper_lens("polynomial"))
+    res = model.evaluate(np.zeros((0, 6)))
+    assert res.z.shape == (0, len(model.modes)) and res.valid.shape == (0,)
+    J, complete, _ = jacobian(model, np.zeros((0, 6)))
+    assert J.shape == (0, len(model.modes), 6) and complete.shape == (0,)
+    J, complete, _ = jacobian(model, np.zeros((0, 6)), uv=np.zeros((0, model.targets.shape[0], 2)))
+    assert J.shape == (0, len(model.modes), 6)

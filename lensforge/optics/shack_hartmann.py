@@ -255,7 +255,8 @@ class ForwardModel:
         P, q = uv.shape[0], self.quad_weights.size
         with np.errstate(divide="ignore", invalid="ignore"):
             irr = self._beam(uv) / det
-        return {"poses": poses, "uv": uv, "sq": sq.reshape(P, -1, q, 2), "st": st.reshape(P, -1, q), "irr": irr,
+        n_l = self.pupil.n_lenslets  # explicit: P may be 0
+        return {"poses": poses, "uv": uv, "sq": sq.reshape(P, n_l, q, 2), "st": st.reshape(P, n_l, q), "irr": irr,
                 "n": n}
 
     def _beam(self, uv: np.ndarray) -> np.ndarray:
@@ -329,8 +330,9 @@ class ForwardModel:
             if landed.all():
                 with np.errstate(divide="ignore", invalid="ignore"):
                     det = np.abs(np.linalg.det(t.derivatives[:P, :, :2, :]))
-                a = {"poses": x, "uv": uv, "sq": t.slopes[:P].reshape(P, -1, self.quad_weights.size, 2),
-                     "st": t.status[:P].reshape(P, -1, self.quad_weights.size), "irr": self._beam(uv) / det,
+                n_l, q = self.pupil.n_lenslets, self.quad_weights.size
+                a = {"poses": x, "uv": uv, "sq": t.slopes[:P].reshape(P, n_l, q, 2),
+                     "st": t.status[:P].reshape(P, n_l, q), "irr": self._beam(uv) / det,
                      "n": P * N}
             else:
                 t = None
