@@ -250,20 +250,28 @@ def test_joint_design_beats_random_and_matches_estimator(setup, param):
     assert d.chosen["Z_translation_mm"] < d.random["Z_translation_mm"]
 
 
+def _noisy_data(setup, param, seed):
+    """(commanded flange poses, noisy Zernikes of a lens drawn from theta's prior with robot
+    pose noise, X0, Z0 started 0.3-0.4 mm / 0.5 deg off) on the test plan."""
+    bench, _, scene, plan = setup
+    A_cmd = flange_pose(scene, plan, check_reach=False)
+    rng = np.random.default_rng(seed)
+    theta = rng.standard_normal(param.k)
+    A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(A_cmd)))
+    z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
+    X0 = scene.X @ pose_to_matrix([0.3, -0.2, 0.25, 5e-3, -4e-3, 6e-3])
+    Z0 = scene.Z @ pose_to_matrix([-0.25, 0.3, 0.2, -6e-3, 5e-3, 4e-3])
+    return A_cmd, z, X0, Z0
+
+
 def test_reused_jacobians_reach_the_same_minimum(setup, param):
     """The solver reuses its Jacobians across iterations; relinearising at every step
     instead gives the same estimate (within 0.05 of its 1-sigma: both stop when the
     remaining step is below 0.01 sigma) and the same covariance (rel 1e-3: both take
     fresh Jacobians at the estimate). Which is cheaper depends on theta's size
     (benchmarks/bench_joint.py)."""
-    bench, _, scene, plan = setup
-    A_cmd = flange_pose(scene, plan, check_reach=False)
-    rng = np.random.default_rng(21)
-    theta = rng.standard_normal(param.k)
-    A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(A_cmd)))
-    z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
-    X0 = scene.X @ pose_to_matrix([0.3, -0.2, 0.25, 5e-3, -4e-3, 6e-3])
-    Z0 = scene.Z @ pose_to_matrix([-0.25, 0.3, 0.2, -6e-3, 5e-3, 4e-3])
+    bench, _, scene, _ = setup
+    A_cmd, z, X0, Z0 = _noisy_data(setup, param, 21)
     kw = dict(T_SO_nominal=scene.T_SO_nominal, X0=X0, Z0=Z0, robot_cov=scene.noise.cov)
     fast = joint_calibrate(bench, param, z, A_cmd, **kw)
     full = joint_calibrate(bench, param, z, A_cmd, refresh_ratio=0.0, **kw)
@@ -282,13 +290,7 @@ def test_a_pose_darkened_on_the_way_leaves_the_problem(setup, param, monkeypatch
     from lensforge.calibration import joint as joint_mod
 
     bench, _, scene, plan = setup
-    A_cmd = flange_pose(scene, plan, check_reach=False)
-    rng = np.random.default_rng(5)
-    theta = rng.standard_normal(param.k)
-    A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(A_cmd)))
-    z = simulate_joint_data(bench, param, theta, A_true, scene.X, scene.Z, scene.T_SO_nominal, rng=rng)
-    X0 = scene.X @ pose_to_matrix([0.3, -0.2, 0.25, 5e-3, -4e-3, 6e-3])
-    Z0 = scene.Z @ pose_to_matrix([-0.25, 0.3, 0.2, -6e-3, 5e-3, 4e-3])
+    A_cmd, z, X0, Z0 = _noisy_data(setup, param, 5)
     kw = dict(T_SO_nominal=scene.T_SO_nominal, robot_cov=scene.noise.cov)
     without = joint_calibrate(bench, param, z[1:], A_cmd[1:], X0=X0, Z0=Z0, **kw)
 
