@@ -301,12 +301,6 @@ def _inv(S):
     return 0.5 * (C + C.T)
 
 
-def _linearise(pb, theta, x, uv):
-    """(S, Jt, True) at the state: pose and theta Jacobians (the covariance's when the state
-    is the estimate)."""
-    return (*pb.jacobians(theta, x, uv), True)
-
-
 def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
                     theta0=None, theta_prior: bool = True, max_iter: int = 40, tol: float = _STEP_TOL,
                     alpha: float = 1e-3, theta_jacobian0=None,
@@ -383,7 +377,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 break
             # the iteration Jacobians' fixed point is off the minimum by (J^T J)^-1 dJ^T r
             # when the residuals r are not zero: finish with fresh ones
-            S, Jt, fresh = _linearise(pb, theta, x, uv)
+            (S, Jt), fresh = pb.jacobians(theta, x, uv), True
             prev_dec = np.inf
             continue
         accepted = False
@@ -422,7 +416,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             lam *= 10
         if not accepted:
             if not fresh:  # the iteration Jacobians limit the descent: relinearise here and go on
-                S, Jt, fresh = _linearise(pb, theta, x, uv)
+                (S, Jt), fresh = pb.jacobians(theta, x, uv), True
                 prev_dec, lam = np.inf, 1e-6
                 continue
             converged = True  # no descent left with exact Jacobians: a minimum (to the residuals' accuracy)
@@ -431,12 +425,12 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         # (dh/dtheta changes by ~1 % per prior sigma of theta, dh/dx far less)
         fresh = fresh and dec < _FRESH_STEP ** 2 * scale
         if not fresh and dec > refresh_ratio ** 2 * prev_dec:  # slow contraction: the Jacobians are stale
-            S, Jt, fresh = _linearise(pb, theta, x, uv)
+            (S, Jt), fresh = pb.jacobians(theta, x, uv), True
             prev_dec = np.inf
         else:
             prev_dec = dec
     if not fresh:  # max_iter reached: the covariance needs Jacobians at the estimate
-        S, Jt, fresh = _linearise(pb, theta, x, uv)
+        (S, Jt), fresh = pb.jacobians(theta, x, uv), True
     # covariance at the estimate, fresh Jacobians
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)

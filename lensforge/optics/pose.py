@@ -133,13 +133,16 @@ def adjoint(T) -> np.ndarray:
 
 
 def right_jacobian_so3(r) -> np.ndarray:
-    """Right Jacobian J_r(r) of SO(3): R(r + dr) = R(r) Exp(J_r(r) dr) to first order."""
+    """Right Jacobian J_r(r) (..., 3, 3) of SO(3) for rotation vectors r (..., 3):
+    R(r + dr) = R(r) Exp(J_r(r) dr) to first order."""
     r = np.asarray(r, dtype=float)
-    th = np.linalg.norm(r)
+    th = np.linalg.norm(r, axis=-1)[..., None, None]
     K = skew(r)
-    if th < 1e-8:
-        return np.eye(3) - 0.5 * K + K @ K / 6.0
-    return (np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K)
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
+    b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths**3)
+    return np.eye(3) - a * K + b * K @ K
 
 
 def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The one Jacobian of the forward model and the one observability rule; the
 sensitivity matrix S = dz/dx and the design metrics built on them.
 
-``jacobian``: the exact dz/dx at P poses (``ForwardModel.pose_jacobian``: the rays'
+``jacobian``: the exact dz/dx at P poses (``ForwardModel.jacobians``: the rays'
 derivatives carried through the trace, the implicit function theorem for the aimed
 rays and a complex step through the centroid), warm-started from the aimed rays at
 each pose. Every estimator, metric and design constraint calls it.
@@ -59,7 +59,7 @@ def jacobian(model: ForwardModel, x: ArrayLike, *, uv: ArrayLike | None = None,
     at the default bench.fd_steps; tests/test_observability.py).
     """
     x = np.atleast_2d(np.asarray(x, dtype=float))
-    J, res = model.pose_jacobian(x, uv0=uv, check_range=check_range)
+    J, _, res = model.jacobians(x, uv0=uv, check_range=check_range)
     return J, res.valid, res
 
 

@@ -285,13 +285,6 @@ class ForwardModel:
         z = self.pupil.fit(slopes)
         return ZernikeResult(z, slopes, irr_mean, status, valid, a["uv"], a["n"], thr, use, sensor.spot_assignment)
 
-    def pose_jacobian(self, poses: ArrayLike, uv0: ArrayLike | None = None,
-                      check_range: bool = False) -> tuple[np.ndarray, ZernikeResult]:
-        """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad) and the model at them
-        (``jacobians`` without lens tangents)."""
-        J, _, res = self.jacobians(poses, uv0, check_range)
-        return J, res
-
     def jacobians(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = False,
                   lens_tangents: LensTangents | None = None) -> tuple[np.ndarray, np.ndarray | None, ZernikeResult]:
         """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad), dz along each of the
@@ -327,20 +320,16 @@ class ForwardModel:
             uv = np.array(np.broadcast_to(uv0, (P, N, 2)), dtype=float)
             t = derivatives(uv)
             landed = (t.status[:P] == OK) & np.all(np.abs(t.xy[:P] - self.targets) < AIM_TOL, axis=-1)
-            if landed.all():
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    det = np.abs(np.linalg.det(t.derivatives[:P, :, :2, :]))
+            if landed.all():  # the aim's record, from the first trace (irradiance once det J is known)
                 n_l, q = self.pupil.n_lenslets, self.quad_weights.size
                 a = {"poses": x, "uv": uv, "sq": t.slopes[:P].reshape(P, n_l, q, 2),
-                     "st": t.status[:P].reshape(P, n_l, q), "irr": self._beam(uv) / det,
-                     "n": P * N}
+                     "st": t.status[:P].reshape(P, n_l, q), "irr": None, "n": P * N}
             else:
                 t = None
         if t is None:
             a = self._aim(x, uv0, False)
             uv = a["uv"]
             t = derivatives(uv)
-        res = self._zernike(a)
         Ds = t.all_derivatives  # columns u, v, the pose directions, the lens tangents
         nq = Ds.shape[-1] - 2  # directions q: pose, then lens
         Ds = Ds.reshape(3, P, N, 4, nq + 2)
@@ -350,6 +339,10 @@ class ForwardModel:
             Ds[1, ..., r, :] for r in range(2)), (Ds[2, ..., r, :] for r in range(2))
         j00, j01, j10, j11 = X[..., 0], X[..., 1], Y[..., 0], Y[..., 1]  # J = d(X, Y)/d(u, v)
         det = j00 * j11 - j01 * j10
+        if a["irr"] is None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a["irr"] = self._beam(uv) / np.abs(det)
+        res = self._zernike(a)
         det = np.where(ok & (det != 0), det, 1.0)
         # the aimed (u, v) along each direction q (P, N, nq): du/dq = -J^-1 dX/dq
         Xq, Yq = X[..., 2:], Y[..., 2:]

@@ -32,7 +32,7 @@ import numpy as np
 from .bench import Bench
 from .jit import compile_notice
 from .lens import Lens
-from .pose import rotations, skew
+from .pose import right_jacobian_so3, rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
@@ -621,13 +621,7 @@ def pose_frame_derivatives(poses) -> np.ndarray:
     (translation: dt = e_j; rotation: dR = R [J_r(r) e_j]x, J_r the right Jacobian of SO(3))."""
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     r = poses[:, 3:]
-    th = np.linalg.norm(r, axis=1)[:, None, None]
-    K = skew(r)
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
-    b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths**3)
-    Jr = np.eye(3) - a * K + b * K @ K  # right Jacobian, as pose.right_jacobian_so3
+    Jr = right_jacobian_so3(r)
     dT = np.zeros((len(poses), 6, 3, 4))
     dT[:, :3, :, 3] = np.eye(3)
     dT[:, 3:, :, :3] = rotations(r)[:, None] @ skew(np.swapaxes(Jr, 1, 2))
