@@ -81,14 +81,16 @@ def _os_error_line(e: OSError) -> str:
 
 def main(args: list[str] | None = None) -> None:
     """Entry point: run the app; a user's mistake prints one line ``error: ...`` and exits 2;
-    Ctrl-C prints ``error: interrupted`` and exits 130 (see ``lensforge.interrupts``)."""
+    a fit that fails its model check exits 3 (``errors.ModelCheckError``, diagnostics written);
+    Ctrl-C prints ``error: interrupted`` and exits 130, SIGTERM ``error: terminated`` and 143
+    (see ``lensforge.interrupts``)."""
     with sigint_guard() as interrupted:
         try:
             rc = app(args=args, prog_name="lensforge", standalone_mode=False)
         except Interrupted:
             hard_exit()
         except LensforgeError as e:
-            _fail(interrupted, f"error: {' '.join(str(e).split())}", 2)
+            _fail(interrupted, f"error: {' '.join(str(e).split())}", getattr(e, "exit_code", 2))
         except KeyboardInterrupt:
             hard_exit()
         except OSError as e:
