@@ -50,6 +50,7 @@ from pathlib import Path
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError, PoseRangeError
+from .plausibility import check_repeatability
 from ..fileio import read_toml
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 
@@ -214,7 +215,7 @@ def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
         name=name, origins_mm=tuple(origins), axes=tuple(axes), limits_rad=tuple(limits),
         tool=tuple(map(tuple, tool)), reach_mm=_num(d, "reach_mm", where),
         origins_rot=None if all(np.allclose(r, np.eye(3)) for r in rots) else tuple(tuple(map(tuple, r)) for r in rots),
-        repeatability_mm=_num(d, "repeatability_mm", where),
+        repeatability_mm=check_repeatability(_num(d, "repeatability_mm", where), where),
         repeatability_lever_mm=_num(d, "repeatability_lever_mm", where, 500.0),
         ik_seeds_deg=seeds,
         cell_Z=None if cZ is None else tuple(map(tuple, cZ)),

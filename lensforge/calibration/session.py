@@ -51,6 +51,8 @@ from .handeye import solve_handeye
 from .joint_design import candidate_information, design_joint_poses
 from ..asbuilt.lens_params import parameterise
 from .pose_design import candidate_poses
+from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
+                           check_wfs_values, job_memory_bytes, pose_file_kind)
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 from .session_joint import joint_session, resolve_tolerances
@@ -76,10 +78,13 @@ def load_design_lens(design: LensSpec, bench: Bench | None = None) -> tuple[Lens
     return r.lens, r.bench_or(bench)
 
 
-def bench_for_measurements(bench: Bench, wfs: formats.WfsData) -> Bench:
+def bench_for_measurements(bench: Bench, wfs: formats.WfsData, wfs_header: str = "file") -> Bench:
     """The bench with the WFS file's Zernike order, pupil and wavelength (the file
-    describes the instrument's settings; absent header values keep the bench's)."""
-    h = wfs.header
+    describes the instrument's settings; absent header values keep the bench's).
+    wfs_header: "file" (the file's header values win), "bench" (they are ignored) or
+    "error" (a header value that contradicts the bench is a ConfigError naming both;
+    ``plausibility.check_wfs_header``)."""
+    h = check_wfs_header(bench, wfs.header, wfs.source or "WFS file", wfs_header)
     sensor = {"zernike_order": int(wfs.order)}
     if "pupil_radius_mm" in h:
         sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])
@@ -280,7 +285,8 @@ def _estimate_one(model: ForwardModel, z: np.ndarray, starts) -> tuple[PoseEstim
     return None, reason or "the estimate did not converge"
 
 
-def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
+def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None,
+             pose_id: str | None = None, wfs_header: str = "error") -> dict:
     """One lens pose with its covariance from one WFS measurement.
 
     measurement: WFS CSV/JSON path or WfsData; pose_id selects a row (default: the
@@ -296,7 +302,8 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         if str(pose_id) not in wfs.ids:
             raise ConfigError(f"{wfs.source}: field pose: no pose id {pose_id!r} (ids: {', '.join(wfs.ids[:10])}...)")
         k = wfs.ids.index(str(pose_id))
-    b = bench_for_measurements(bench, wfs)
+    check_wfs_values(wfs.zernike[k:k + 1], wfs.source or "WFS file", wfs.rows[k:k + 1])
+    b = bench_for_measurements(bench, wfs, wfs_header)
     model = ForwardModel(b, lens)
     z = zernike_for_model(wfs.zernike[k], model)[0]
     est, reason = _estimate_one(model, z, [None])
@@ -317,13 +324,21 @@ def _solve(A, B, C, noise):
 
 
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
-                  robot: RobotModel | str | None = None) -> SessionData:
+                  robot: RobotModel | str | None = None, wfs_header: str = "error") -> SessionData:
     """Read and match a session's files by pose id (ids in one file only are reported in
-    ``rejected``; fewer than 3 matches is a ConfigError naming both files)."""
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files). Implausible
+    inputs are refused first (``plausibility``): an all-zero or constant WFS file, header
+    values that contradict the bench (wfs_header: "error", "file" or "bench"), flange poses
+    beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     wfs = _as_table(measurements, formats.read_wfs)
     poses = _as_table(robot_poses, formats.read_robot_poses)
+    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
+    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
+    check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
+    units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
+    check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:
@@ -337,8 +352,10 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    b = bench_for_measurements(bench, wfs)
+    b = bench_for_measurements(bench, wfs, wfs_header)
     model = ForwardModel(b, lens)
+    check_job_memory(job_memory_bytes(len(common), len(model.modes), model.pupil.n_lenslets),
+                     f"calibrating {len(common)} poses", f"{poses.source or 'robot poses'}")
     A = poses.T[[poses.ids.index(i) for i in common]]
     z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
     return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
@@ -349,7 +366,7 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
               robot_poses: str | PathLike[str] | formats.PoseTable, *, bench: Bench | None = None,
               robot: RobotModel | str | None = None, method: str = "joint",
               tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
-              progress: Callable[[int, int], None] | None = None) -> CalibrationResult:
+              progress: Callable[[int, int], None] | None = None, wfs_header: str = "error") -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
@@ -360,11 +377,13 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     model of the joint method's lens prior ("default": the package's file, or a TOML
     path; two-stage ignores it); progress: optional callable (done, total) called after each
     lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
-    than 3 usable poses.
+    than 3 usable poses; wfs_header: see ``match_session``. The result's ``valid`` says
+    whether it passed its chi2 model check (``model_check``); one that did not is not a
+    calibration (``calibration.diagnosis`` names the likely mistake).
     """
     if method not in CALIBRATION_METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
-    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, wfs_header=wfs_header)
     return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
 
 
