@@ -1,7 +1,7 @@
 """File I/O shared by every layer: atomic writes and JSON/TOML reads with one clear error.
 
 Sits beside ``errors.py`` at the bottom of the import graph (imports nothing of lensforge
-but the errors), so optics, design, manufacturing, verification and the CLI all use it.
+but the errors and ``interrupts.committing``), so optics, design, manufacturing, verification and the CLI all use it.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import ConfigError
+from .interrupts import committing
 
 __all__ = ["write_atomic", "read_json", "read_toml", "json_default", "dumps_json", "check_output", "staged_dir",
            "Staged", "MAX_INPUT_BYTES", "MAX_TABLE_BYTES", "read_bounded", "public_path", "public_text"]
@@ -218,10 +219,11 @@ def staged_dir(out):
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)
-        if not out.exists():
-            os.rename(tmp, out)
-        else:
-            _merge(tmp, out)
+        with committing():  # all in place or nothing, whatever signal arrives meanwhile
+            if not out.exists():
+                os.rename(tmp, out)
+            else:
+                _merge(tmp, out)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -37,7 +37,7 @@ import threading
 import time
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "Terminated", "sigint_guard", "hard_exit", "supervise", "descendants", "alive",
+__all__ = ["Interrupted", "Terminated", "sigint_guard", "committing", "hard_exit", "supervise", "descendants", "alive",
            "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OUT_OF_MEMORY_LINE"]
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention
@@ -136,6 +136,27 @@ def hard_exit(code: int | None = None, message: str | None = None) -> None:
 # the exit status of the signal that ended the command (set by the guard's handlers; read by
 # hard_exit() called without arguments). A one-element list: the process has one signal state.
 _last_signal_exit = [EXIT_INTERRUPTED]
+# True once a command's outputs are in place (``committing``): a first Ctrl-C / SIGTERM after that
+# is not an interrupt -- the command only prints what it wrote and ends with status 0
+_committed = [False]
+
+
+@contextmanager
+def committing():
+    """Around the rename that puts a command's outputs in place (``fileio.staged_dir``,
+    ``formats.write_bundle``): SIGINT and SIGTERM wait until it is done, and once it is, the
+    outputs are complete, so a first signal that follows no longer interrupts: the command
+    ends normally (status 0) within the supervisor's grace. Outside the main thread it only
+    runs the block."""
+    main = threading.current_thread() is threading.main_thread()
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs) if main else None
+    try:
+        yield
+        _committed[0] = True
+    finally:
+        if old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class _State:
@@ -146,6 +167,7 @@ class _State:
         self.count = 0
         self.first_t = None
         self.code = EXIT_INTERRUPTED
+        self.deferred = None  # when a signal arrived after the outputs were committed
 
     def watchdog(self) -> None:
         time.sleep(self.grace_s)
@@ -164,9 +186,21 @@ def sigint_guard(grace_s: float = 1.2):
         yield lambda: False
         return
     st = _State(grace_s)
+    _committed[0] = False  # a new command: nothing of it is written yet
 
     def handler(signum, frame):
         now = time.monotonic()
+        if _committed[0] and not st.count:
+            # the outputs are in place: let the command finish (exit 0; see committing()), but not for
+            # longer than the grace, and a second press still ends it
+            if st.deferred is not None and now - st.deferred >= REPEAT_S:
+                hard_exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
+            if st.deferred is None:
+                st.deferred = now
+                st.code = EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED
+                _last_signal_exit[0] = st.code
+                threading.Thread(target=st.watchdog, name="lensforge-sigint-watchdog", daemon=True).start()
+            return
         if st.count and now - st.first_t < REPEAT_S:
             return  # the same press delivered twice (terminal and supervisor); already unwinding
         st.count += 1

@@ -56,6 +56,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
+from ..interrupts import committing
 from ..fileio import MAX_TABLE_BYTES, dumps_json, read_bounded, read_json, write_atomic
 
 __all__ = [
@@ -593,10 +594,11 @@ def write_bundle(folder, files: dict, overwrite: bool = True, drop: tuple = ()) 
         for name, data in files.items():
             write_atomic(tmp / name, data)
         old = None
-        if folder.exists():
-            old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
-            os.replace(folder, old)
-        os.replace(tmp, folder)
+        with committing():  # the swap completes whatever signal arrives meanwhile
+            if folder.exists():
+                old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
+                os.replace(folder, old)
+            os.replace(tmp, folder)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:
