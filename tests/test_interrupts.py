@@ -133,3 +133,35 @@ def test_no_supervisor_when_disabled():
     p = _start("sys.exit(0)", LENSFORGE_NO_SUPERVISOR="1")
     out, _ = p.communicate(timeout=60)
     assert int(out) == p.pid and p.returncode == 0
+
+
+def test_a_signal_after_the_outputs_are_committed_does_not_interrupt():
+    """Outputs all or nothing (issue 23): once fileio.staged_dir has renamed them into place, a
+    first Ctrl-C lets the command finish (exit 0) instead of 'error: interrupted' beside a
+    complete output folder; before the commit it interrupts as always."""
+    from lensforge.interrupts import Interrupted, committing, sigint_guard
+
+    with sigint_guard(grace_s=30) as interrupted:
+        with pytest.raises(Interrupted):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+    with sigint_guard(grace_s=30) as interrupted:
+        with committing():
+            os.kill(os.getpid(), signal.SIGINT)  # blocked during the rename, delivered after it
+        time.sleep(0.2)
+        assert not interrupted()
+
+
+def test_staged_output_is_complete_or_absent_under_sigterm(tmp_path):
+    """SIGTERM while a staged folder is being filled: the command unwinds, exit 143, and neither the
+    output folder nor a hidden temporary one is left."""
+    body = ("from lensforge.fileio import staged_dir\n        import time, pathlib\n"
+            f"        with staged_dir(pathlib.Path({str(tmp_path / 'out')!r})) as st:\n"
+            "            (st.tmp / 'a.txt').write_text('x')\n            time.sleep(60)")
+    p = _start(body)
+    _child_pid(p)
+    time.sleep(0.5)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143 and err == "error: terminated\n", err
+    assert os.listdir(tmp_path) == []

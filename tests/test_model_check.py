@@ -136,7 +136,7 @@ def test_handeye_exits_3_on_a_misfit_with_its_noise_model(tmp_path, monkeypatch,
     x = rng.normal(size=(10, 6)) * [0.5, 0.5, 0.5, 0.08, 0.08, 0.08]
     B = sc.T_SO_nominal @ pose_to_matrix(x)
     A = sc.Z @ B @ invert_poses(sc.X)
-    A = A @ pose_to_matrix(rng.normal(size=(10, 6)) * [0.01] * 3 + [1e-5] * 3)
+    A = A @ pose_to_matrix(rng.normal(size=(10, 6)) * np.array([0.01] * 3 + [1e-5] * 3))
     good = {"schema_version": 1, "kind": "lensforge.poses", "units": "mm", "A": A.tolist(), "B": B.tolist(),
             "noise": {"robot_sigma_trans_mm": 0.01, "robot_sigma_rot_deg": 6e-4, "lens_sigma_trans_mm": 0.005,
                       "lens_sigma_rot_deg": 0.01}}

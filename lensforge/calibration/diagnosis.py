@@ -245,7 +245,8 @@ def diagnose_session(design, measurements, robot_poses, failed, *, bench=None, r
     """The likely mistake behind a failed calibration (module docstring).
 
     design, measurements, robot_poses, bench, robot, method, tolerances, wfs_header: as given
-    to ``session.calibrate``; failed: its CalibrationResult (valid False); time_budget_s: the
+    to ``session.calibrate``; failed: its CalibrationResult (valid False), or None when the
+    calibration found too few lens poses to fit at all; time_budget_s: the
     screen stops trying readings after this long. The screen ranks every reading by its
     hand-eye chi2/dof (``_screen``: one batched pose estimate per WFS reading or design, a
     hand-eye solve per robot reading); the best, if it beats the inputs as given by
@@ -285,8 +286,13 @@ def diagnose_session(design, measurements, robot_poses, failed, *, bench=None, r
                 c = float("inf")
             tries.append({"reading": r.name, "chi2_dof": _fin(c)})
             scores.append((c, r))
-        scores.sort(key=lambda t: t[0])
-        if not scores or not math.isfinite(scores[0][0]) or not scores[0][0] * SCREEN_GAIN <= base:
+        # closest to the noise model (chi2/dof ~ 1, in log): a reading that makes the misfit absurdly
+        # small (the noise model far too large for the numbers) is no explanation either
+        def dist(c):
+            return abs(math.log(c)) if c > 0 and math.isfinite(c) else float("inf")
+        scores.sort(key=lambda t: dist(t[0]))
+        if not scores or not math.isfinite(dist(scores[0][0])) or \
+                not dist(scores[0][0]) + math.log(SCREEN_GAIN) <= dist(base):
             return Diagnosis(None, tuple(tries), time.monotonic() - t0)
         c, r = scores[0]
         try:
@@ -295,10 +301,10 @@ def diagnose_session(design, measurements, robot_poses, failed, *, bench=None, r
         except LensforgeError:
             return Diagnosis(None, tuple(tries), time.monotonic() - t0)
     tries.append({"reading": f"{r.name} ({res.method})", "chi2_dof": _fin(res.chi2_dof)})
-    if res.valid and len(res.poses_used) >= max(3, len(failed.poses_used) // 2):
-        return Diagnosis(Mistake(r.name, r.message, failed.chi2_dof, res.chi2_dof), tuple(tries),
-                         time.monotonic() - t0)
-    if res.chi2_dof * SCREEN_GAIN <= failed.chi2_dof:  # a large part of the misfit: say so, and what is left
+    before = failed.chi2_dof if failed is not None else float("inf")
+    if res.valid and len(res.poses_used) >= max(3, len(failed.poses_used) // 2 if failed is not None else 3):
+        return Diagnosis(Mistake(r.name, r.message, before, res.chi2_dof), tuple(tries), time.monotonic() - t0)
+    if failed is not None and res.chi2_dof * SCREEN_GAIN <= failed.chi2_dof:  # a large part of the misfit: say so, and what is left
         msg = r.message.replace("the fit passes if", "the misfit drops", 1).replace("the fit passes with",
                                                                                     "the misfit drops with", 1)
         msg = (f"{msg} (chi2/dof {failed.chi2_dof:.3g} -> {res.chi2_dof:.3g}, still failing: the rest may be the lens "

@@ -215,7 +215,7 @@ def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
         name=name, origins_mm=tuple(origins), axes=tuple(axes), limits_rad=tuple(limits),
         tool=tuple(map(tuple, tool)), reach_mm=_num(d, "reach_mm", where),
         origins_rot=None if all(np.allclose(r, np.eye(3)) for r in rots) else tuple(tuple(map(tuple, r)) for r in rots),
-        repeatability_mm=check_repeatability(_num(d, "repeatability_mm", where), where),
+        repeatability_mm=_num(d, "repeatability_mm", where),
         repeatability_lever_mm=_num(d, "repeatability_lever_mm", where, 500.0),
         ik_seeds_deg=seeds,
         cell_Z=None if cZ is None else tuple(map(tuple, cZ)),
@@ -235,7 +235,9 @@ def load_robot(spec: str | Path | None = None) -> RobotModel:
         if not path.exists():
             raise ConfigError(f"robot: {key!r} is neither a built-in robot ({', '.join(ROBOTS)}) nor an existing "
                               "TOML file")
-    return robot_from_dict(read_toml(path, "robot file"), where=path.name)
+    robot = robot_from_dict(read_toml(path, "robot file"), where=path.name)
+    check_repeatability(robot.repeatability_mm, path.name)  # a robot file's value; simulations may go lower
+    return robot
 
 
 def kr10_r1100_sixx() -> RobotModel:

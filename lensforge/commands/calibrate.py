@@ -19,7 +19,7 @@ from typing import Optional
 
 import typer
 
-from ..errors import ModelCheckError
+from ..errors import CalibrationError, ConfigError, LensforgeError, ModelCheckError
 from ..fileio import check_output
 from ..progress import progress_bar
 from ._common import ROBOT_HELP, bench_arg, emit_json, info
@@ -36,6 +36,26 @@ def failed_check_line(chi2_dof: float, reason: str | None, mistake, where: str) 
     return (f"{head}: {reason}; none of the usual convention mistakes (units, angle units, quaternion and "
             f"Zernike order, waves, sign, another design) explains it; check the lens as built, the bench file "
             f"and the noise model; diagnostics in {where}, no easy_handeye.yaml written")
+
+
+def explain_no_fit(e: CalibrationError, design, measurements, robot_poses, bench, robot, method, tolerances,
+                   wfs_header) -> None:
+    """When the calibration could not fit at all (too few lens poses found), re-try the usual
+    convention mistakes (``calibration.diagnosis``); if one makes the fit pass, a ConfigError
+    (exit 2) naming it, after the original reason."""
+    if "poses gave a lens pose" not in str(e):
+        return
+    from ..calibration.diagnosis import diagnose_session
+
+    info("no fit: trying the usual convention mistakes ...")
+    try:
+        dx = diagnose_session(design, measurements, robot_poses, None, bench=bench_arg(bench), robot=robot,
+                              method=method, tolerances=tolerances, wfs_header=wfs_header)
+    except LensforgeError:
+        return
+    if dx.mistake is not None and not dx.mistake.partial:
+        reason = " ".join(str(e).split(";")[0].split())
+        raise ConfigError(f"{reason}; {dx.mistake.message}") from None
 
 
 def calibrate_cmd(
@@ -74,8 +94,12 @@ def calibrate_cmd(
         from ..calibration.formats import write_bundle
         from ..calibration.session import calibrate
 
-        res = calibrate(design, measurements, robot_poses, bench=bench_arg(bench), robot=robot, method=method,
-                        tolerances=tolerances, progress=bar.update, wfs_header=wfs_header)
+        try:
+            res = calibrate(design, measurements, robot_poses, bench=bench_arg(bench), robot=robot, method=method,
+                            tolerances=tolerances, progress=bar.update, wfs_header=wfs_header)
+        except CalibrationError as e:  # too few lens poses to fit: the same convention mistakes are the usual cause
+            explain_no_fit(e, design, measurements, robot_poses, bench, robot, method, tolerances, wfs_header)
+            raise
     mistake = None
     if not res.valid and not accept_failed_check:
         from ..calibration.diagnosis import diagnose_session

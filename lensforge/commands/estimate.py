@@ -10,7 +10,7 @@ from typing import List, Optional
 import numpy as np
 import typer
 
-from ..errors import ConfigError
+from ..errors import CalibrationError, ConfigError
 from ..fileio import check_output, staged_dir, write_atomic
 from ..progress import progress_bar
 from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, info, load_bench_arg
@@ -85,7 +85,17 @@ def estimate_cmd(
     from ..calibration.session import estimate
     from ..optics.pose import DOF_NAMES
 
-    r = estimate(design, measurement, bench=bench_arg(bench), pose_id=pose, wfs_header=wfs_header)
+    try:
+        r = estimate(design, measurement, bench=bench_arg(bench), pose_id=pose, wfs_header=wfs_header)
+    except CalibrationError as exc:  # no pose found: the usual convention mistakes are the usual cause
+        if "no lens pose found" in str(exc):
+            from ..calibration.diagnosis import diagnose_estimate
+
+            dx = diagnose_estimate(design, measurement, float("inf"), bench=bench_arg(bench), pose_id=pose,
+                                   wfs_header=wfs_header)
+            if dx.mistake is not None:
+                raise ConfigError(f"{' '.join(str(exc).split())}; {dx.mistake.message}") from None
+        raise
     e = r["estimate"]
     mc = check_chi2(e.chi2, e.dof, what="pose estimate")
     std = e.std

@@ -193,6 +193,7 @@ def diagnose_handeye(kw: dict, method: str, failed) -> dict | None:
              ("B inverted", "the fit passes if B is inverted: give the lens in the sensor frame (^S T_O)",
               A, invert_poses(B)),
              ("A and B swapped", "the fit passes with A and B swapped: A is the robot flange, B the lens", B, A)]
+    best = None
     for name, message, A2, B2 in tries:
         try:
             with warnings.catch_warnings():
@@ -200,10 +201,14 @@ def diagnose_handeye(kw: dict, method: str, failed) -> dict | None:
                 r = solve_handeye(A2, B2, method=method, sigma=kw["sigma"], cov_B=kw["cov_B"], on_degenerate="warn")
         except (LensforgeError, np.linalg.LinAlgError, ValueError):  # a try that cannot be solved explains nothing
             continue
-        if check_chi2(r.chi2, r.dof).passed:
-            return {"mistake": name, "message": message, "chi2_dof_before": float(failed.chi2_dof),
-                    "chi2_dof_after": float(r.chi2_dof)}
-    return None
+        # passing, and closest to the noise model (chi2/dof ~ 1): rescaling A and B together also
+        # "passes", with the noise then far too large for the numbers (chi2/dof << 1)
+        if check_chi2(r.chi2, r.dof).passed and r.chi2_dof > 0:
+            score = abs(np.log(r.chi2_dof))
+            if best is None or score < best[0]:
+                best = (score, {"mistake": name, "message": message, "chi2_dof_before": float(failed.chi2_dof),
+                                "chi2_dof_after": float(r.chi2_dof)})
+    return None if best is None else best[1]
 
 
 def handeye_cmd(
