@@ -135,21 +135,25 @@ def test_no_supervisor_when_disabled():
     assert int(out) == p.pid and p.returncode == 0
 
 
-def test_a_signal_after_the_outputs_are_committed_does_not_interrupt():
+def test_a_signal_after_the_outputs_are_committed_does_not_interrupt(tmp_path):
     """Outputs all or nothing (issue 23): once fileio.staged_dir has renamed them into place, a
     first Ctrl-C lets the command finish (exit 0) instead of 'error: interrupted' beside a
-    complete output folder; before the commit it interrupts as always."""
-    from lensforge.interrupts import Interrupted, committing, sigint_guard
-
-    with sigint_guard(grace_s=30) as interrupted:
-        with pytest.raises(Interrupted):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.5)
-    with sigint_guard(grace_s=30) as interrupted:
-        with committing():
-            os.kill(os.getpid(), signal.SIGINT)  # blocked during the rename, delivered after it
-        time.sleep(0.2)
-        assert not interrupted()
+    complete output folder (as a late Ctrl-C during export did); before the commit it
+    interrupts as always, and nothing is left."""
+    for when, code, left in (("after", 0, ["out"]), ("before", 130, [])):
+        signal_in_block = when == "before"
+        body = ("from lensforge.fileio import staged_dir\n        import time, pathlib, signal\n"
+                f"        with staged_dir(pathlib.Path({str(tmp_path / when / 'out')!r})) as st:\n"
+                "            (st.tmp / 'a.txt').write_text('x')\n"
+                + ("            os.kill(os.getpid(), signal.SIGINT); time.sleep(5)\n" if signal_in_block else
+                   "        os.kill(os.getpid(), signal.SIGINT); time.sleep(0.3)\n        print('finished', flush=True)"))
+        (tmp_path / when).mkdir()
+        p = _start(body)
+        _child_pid(p)
+        out, err = p.communicate(timeout=60)
+        assert p.returncode == code, (when, err)
+        assert sorted(os.listdir(tmp_path / when)) == left, when
+        assert ("finished" in out) == (code == 0)
 
 
 def test_staged_output_is_complete_or_absent_under_sigterm(tmp_path):

@@ -269,7 +269,10 @@ def diagnose_session(design, measurements, robot_poses, failed, *, bench=None, r
     tries, scores = [], []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        first = _screen(data, [data.A] + [matched(r.poses) for r in robot_r])
+        try:
+            first = _screen(data, [data.A] + [matched(r.poses) for r in robot_r])
+        except LensforgeError:  # the lens poses cannot be estimated as given: only WFS readings and designs can help
+            first = [float("inf")] * (1 + len(robot_r))
         base = first[0]
         tries.append({"reading": "as given", "chi2_dof": _fin(base)})
         for r, c in zip(robot_r, first[1:]):
