@@ -90,7 +90,11 @@ def test_cli_degenerate_motion(tmp_path, monkeypatch, capsys):
                         "sigma_B": {"translation_mm": 1e-3, "rotation_rad": 1e-5}})
     code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json")
     assert code != 0 and "degenerate motion" in err
+    # the file declares the lens noise only (the simulated robot noise is not in it): the chi2 model
+    # check rejects the fit (exit 3, issue 23); this test is about the degenerate directions
     code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json", "--allow-degenerate")
+    assert code == 3 and json.loads(out)["valid"] is False, err
+    code, out, err = _run(monkeypatch, capsys, "handeye", p, "--json", "--allow-degenerate", "--accept-failed-check")
     assert code == 0
     res = json.loads(out)
     assert res["observable"] is False and res["null_directions"]
