@@ -515,8 +515,8 @@ def part_f(rnd: random.Random, n_signals: int = 8):
                 "simulate-session -t": ["simulate-session", lens, "-t", Z0, "-o", t / "s0"],
                 "design --bench": ["design", "--bench", Z0, "-o", t / "d.json"],
                 "design --robust": ["design", "--robust", Z0, "-o", t / "d.json"]}
-        for name, args in zero.items():
-            record_f(f"/dev/zero {name}", args, t, "refused", ("/dev/zero",))
+        for name, args in zero.items():  # the line names the file as given (the symlink for the JSON case)
+            record_f(f"/dev/zero {name}", args, t, "refused", ("zero.json",) if "json" in name else ("/dev/zero",))
         # memory and time bombs
         big_rows = _write(t / "rows.csv", "pose,X,Y,Z,A,B,C\n" + "\n".join(f"{i},0,-500,1000,0,0,0"
                                                                           for i in range(100_000)) + "\n")
