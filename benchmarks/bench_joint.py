@@ -26,8 +26,8 @@ import time
 import numpy as np
 
 from lensforge.calibration.joint import joint_calibrate, simulate_joint_data
-from lensforge.calibration.lens_params import parameterise
-from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.asbuilt.lens_params import parameterise
+from lensforge.asbuilt.tolerances import Tolerances
 from lensforge.optics.lens import resolve_lens
 from lensforge.optics.pose import pose_to_matrix
 from lensforge.optics.shack_hartmann import ForwardModel

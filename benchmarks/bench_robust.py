@@ -36,7 +36,7 @@ from lensforge.design.robust import (  # noqa: E402
     format_robust_table,
     robust_value,
 )
-from lensforge.manufacturing.tolerances import (  # noqa: E402
+from lensforge.asbuilt.tolerances import (  # noqa: E402
     COMPONENTS,
     DEFAULT_TOLERANCES_FILE,
     load_tolerances,

@@ -29,7 +29,7 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true")
     a = ap.parse_args()
 
-    from lensforge.manufacturing.tolerances import Tolerances
+    from lensforge.asbuilt.tolerances import Tolerances
     from lensforge.verification.budget import scaled_all
     from lensforge.verification.study import StudyConfig, verify
 

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from lensforge.calibration.joint_design import box_candidates, design_joint_poses, predicted_joint_uncertainty
-from lensforge.calibration.lens_params import parameterise
+from lensforge.asbuilt.lens_params import parameterise
 from lensforge.calibration.robot import paper_scene
-from lensforge.manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
+from lensforge.asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
 from lensforge.optics.lens import resolve_lens
 from lensforge.verification.study import StudyConfig, calibration_plan
 

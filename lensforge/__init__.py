@@ -77,9 +77,9 @@ _EXPORTS = {
     "optiland_model": "lensforge.manufacturing.prescription",
     "opticstudio_prescription": "lensforge.manufacturing.prescription",
     "write_prescription": "lensforge.manufacturing.prescription",
-    "sample_as_built": "lensforge.manufacturing.tolerances",
-    "Tolerances": "lensforge.manufacturing.tolerances",
-    "load_tolerances": "lensforge.manufacturing.tolerances",
+    "sample_as_built": "lensforge.asbuilt.tolerances",
+    "Tolerances": "lensforge.asbuilt.tolerances",
+    "load_tolerances": "lensforge.asbuilt.tolerances",
     # calibration
     "estimate_pose": "lensforge.calibration.pose_estimation",
     "estimate_poses_batch": "lensforge.calibration.pose_estimation",
@@ -97,7 +97,7 @@ _EXPORTS = {
     "tolerance_budget": "lensforge.verification.budget",
     "sensitivity_analysis": "lensforge.verification.budget",
     # plots
-    "design_plots": "lensforge.plots",
+    "design_plots": "lensforge.plots.design",
     # errors
     "LensforgeError": "lensforge.errors",
     "ConfigError": "lensforge.errors",
@@ -120,7 +120,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
                                              write_prescription)
     from .manufacturing.report import ExportReport, export_lens
     from .manufacturing.step import export_step
-    from .manufacturing.tolerances import Tolerances, load_tolerances, sample_as_built
+    from .asbuilt.tolerances import Tolerances, load_tolerances, sample_as_built
     from .optics.bench import Bench, load_bench, save_bench
     from .optics.lens import PAPER_LENSES, Lens, LensSpec, lens_conventions, load_lens, paper_lens, resolve_lens
     from .optics.materials import load_material
@@ -132,7 +132,7 @@ if TYPE_CHECKING:  # the same names, eagerly, for type checkers and IDEs
     from .optics.zernike import (from_osa_vector, from_thorlabs_vector, nm_to_noll, noll_to_nm, noll_to_osa,
                                  noll_to_thorlabs, osa_to_noll, thorlabs_to_noll, to_osa_vector,
                                  to_thorlabs_vector)
-    from .plots import design_plots
+    from .plots.design import design_plots
     from .verification.budget import sensitivity_analysis, tolerance_budget
     from .verification.session_sim import simulate_session
     from .verification.study import verify

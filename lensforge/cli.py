@@ -20,13 +20,16 @@ import sys
 
 import typer
 
-from .commands.bench import calibrate_cmd, estimate_cmd, plan_cmd, simulate_session_cmd
+from .commands.calibrate import calibrate_cmd
 from .commands.demo import demo
 from .commands.design import compare, design, plot
-from .commands.estimate import estimate_study, scenario
+from .commands.estimate import estimate_cmd, estimate_study
 from .commands.evaluate import evaluate
 from .commands.export import export_cmd
 from .commands.handeye import handeye_cmd
+from .commands.plan import plan_cmd
+from .commands.scenario import scenario
+from .commands.session import simulate_session_cmd
 from .commands.study import budget_cmd, study_cmd
 from .errors import LensforgeError
 from .interrupts import Interrupted, hard_exit, sigint_guard

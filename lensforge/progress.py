@@ -23,14 +23,19 @@ class Bar:
         if self._p is not None:
             self._p.advance(self._task, n)
 
+    def update(self, done: int, total: int | None = None) -> None:
+        """Set the count (and the total, once known): the ``progress(done, total)`` callback form."""
+        if self._p is not None:
+            self._p.update(self._task, completed=done, total=total)
+
     def describe(self, text: str) -> None:
         if self._p is not None:
             self._p.update(self._task, description=text)
 
 
 @contextmanager
-def progress_bar(total: int, description: str = "", enabled: bool = True):
-    """Yield a :class:`Bar` counting to ``total``; it disappears when the block ends."""
+def progress_bar(total: int | None, description: str = "", enabled: bool = True):
+    """Yield a :class:`Bar` counting to ``total`` (None: not known yet); it disappears when the block ends."""
     if not enabled:
         yield Bar()
         return

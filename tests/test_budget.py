@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.asbuilt.tolerances import Tolerances
 from lensforge.verification.budget import (
     scaled_all,
     search_scale,

@@ -84,7 +84,7 @@ def test_cli_joint_recovers_as_built_z_where_two_stage_is_flagged(session, monke
 
 def test_tolerances_option_is_recorded(session, tmp_path):
     _, paths = session
-    from lensforge.manufacturing.tolerances import DEFAULT_TOLERANCES_FILE
+    from lensforge.asbuilt.tolerances import DEFAULT_TOLERANCES_FILE
 
     tol = tmp_path / "tol.toml"
     tol.write_text(DEFAULT_TOLERANCES_FILE.read_text())

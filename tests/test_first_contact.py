@@ -71,7 +71,7 @@ def test_one_percentile_method_failures_count_as_worst():
 
 
 def test_study_summary_and_histogram_lines_agree(monkeypatch):
-    from lensforge.verification import study_plots
+    from lensforge.plots import study as study_plots
     from lensforge.verification.statistics import format_counts, percentile
     from lensforge.verification.study import summarize_errors
 
@@ -83,7 +83,7 @@ def test_study_summary_and_histogram_lines_agree(monkeypatch):
     assert "1 of 5 lenses failed (pupil lost 1)" in format_counts(s)
     assert "3 lost the pupil, 0 did not converge, 0 out of the sensor's range" in format_counts(s)
     figs = []
-    monkeypatch.setattr(study_plots, "_save", lambda fig, path: figs.append(fig) or path)
+    monkeypatch.setattr(study_plots, "save_figure", lambda fig, path: figs.append(fig) or path)
     study_plots.plot_error_histograms([0.1, 0.2, 0.3, 0.4, np.nan], tr + [np.nan], "x.png", 0.01, 0.1)
     ax = figs[0].axes[1]
     medians = [ln.get_xdata()[0] for ln in ax.get_lines() if ln.get_linestyle() == "-" and ln.get_color() == "k"]

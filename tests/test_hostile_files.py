@@ -20,11 +20,11 @@ from hostile import PROFILE, assert_one_line_error, corrupt, hostile_values, lea
 from lensforge.commands.handeye import load_poses
 from lensforge.design.design_file import load_design
 from lensforge.errors import LensforgeError
-from lensforge.manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, TOLERANCE_RANGES, load_tolerances
+from lensforge.asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, TOLERANCE_RANGES, load_tolerances
 from lensforge.optics.bench import Bench, load_bench
 from lensforge.optics.lens import load_lens, paper_lens
 from lensforge.optics.pose import pose_to_matrix
-from lensforge.schema import BENCH_RANGES, check_ranges, flatten
+from lensforge.input_checks import BENCH_RANGES, check_ranges, flatten
 
 settings.load_profile(PROFILE)
 

@@ -1,4 +1,4 @@
-"""Joint as-built calibration (calibration.joint, calibration.lens_params).
+"""Joint as-built calibration (calibration.joint, asbuilt.lens_params).
 
 Setup shared by the tests: the paper's polynomial lens (all six pose DOF observable
 per pose, so the joint problem is well conditioned) on the default bench, the
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from lensforge.calibration.joint import joint_calibrate, pose_chain, simulate_joint_data
-from lensforge.calibration.lens_params import lens_space, parameterise
-from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.asbuilt.lens_params import lens_space, parameterise
+from lensforge.asbuilt.tolerances import Tolerances
 from lensforge.optics.bench import Bench
 from lensforge.optics.lens import paper_lens
 from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
@@ -57,7 +57,7 @@ def test_exact_theta_jacobian_matches_differences_of_the_model(setup, param):
     model over theta at two steps (their gap bounds the difference error), at an
     as-built theta; the same for the elementary deviations the parameterisation uses."""
     from lensforge.calibration.joint import JointProblem
-    from lensforge.calibration.lens_params import elementary_jacobian
+    from lensforge.asbuilt.lens_params import elementary_jacobian
     from lensforge.optics.shack_hartmann import ForwardModel
 
     bench, lens, scene, plan = setup
@@ -173,7 +173,7 @@ def test_mismatch_flagged(setup, param):
     """A lens with a form error outside theta's span (spherical aberration Z11, not in
     the tolerance model's modes) is flagged by the chi^2 test; in-span data are not."""
     bench, lens, scene, plan = setup
-    from lensforge.calibration.lens_params import LensSpace
+    from lensforge.asbuilt.lens_params import LensSpace
 
     rng = np.random.default_rng(5)
     A = flange_pose(scene, plan, check_reach=False)

@@ -5,8 +5,10 @@ import pytest
 
 import lensforge as lf
 from lensforge.optics.surfaces import Conic
-from lensforge.plots import (beam_footprint, design_plots, plot_convergence, plot_handeye_residuals, save_figure,
-                             working_range_poses)
+from lensforge.optics.footprint import beam_footprint, working_range_poses
+from lensforge.plots.calibration import plot_handeye_residuals
+from lensforge.plots.design import design_plots, plot_convergence
+from lensforge.plots.figure import save_figure
 
 
 def _flat(thickness=4.0):
@@ -81,7 +83,7 @@ def test_convergence_and_handeye_residual_figures(tmp_path):
 @pytest.mark.parametrize("rows", [[{"component": "a", "p95_rot_deg": 0.5, "p95_trans_mm": 2.0},
                                    {"component": "b", "p95_rot_deg": 0.01, "p95_trans_mm": None}]])
 def test_sensitivity_bars_start_at_zero_and_budget_has_a_legend(rows, tmp_path):
-    from lensforge.verification import study_plots
+    from lensforge.plots import study as study_plots
 
     study_plots.plot_sensitivity(rows, tmp_path / "s.png")
     study_plots.plot_budget([{"component": "a", "max_scale": 0.1}, {"component": "b", "max_scale": 3.0}],

@@ -12,7 +12,7 @@ from lensforge.design.optimize import DesignProblem, optimize_design
 from lensforge.design.parameterisation import parameterisation
 from lensforge.design.robust import FAIL_VALUE, RobustSpec, compare_robust, robust_value
 from lensforge.errors import ConfigError
-from lensforge.manufacturing.tolerances import (
+from lensforge.asbuilt.tolerances import (
     DEFAULT_TOLERANCES_FILE,
     Tolerances,
     load_tolerances,

@@ -5,7 +5,8 @@ import pytest
 
 import lensforge as lf
 from lensforge.errors import ConfigError
-from lensforge.optics.sensor_range import quadrature_rule, spot_guard_mm
+from lensforge.optics.centroid import quadrature_rule
+from lensforge.optics.sensor_range import spot_guard_mm
 from lensforge.optics.shack_hartmann import ForwardModel
 
 

@@ -9,7 +9,7 @@ from conftest import check_json_output
 import pytest
 
 from lensforge.errors import ConfigError
-from lensforge.manufacturing.tolerances import Tolerances
+from lensforge.asbuilt.tolerances import Tolerances
 from lensforge.optics.shack_hartmann import ForwardModel
 from lensforge.calibration.pose_estimation import estimate_pose_model, estimate_poses_batch
 from lensforge.verification.study import StudyConfig, verify

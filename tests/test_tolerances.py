@@ -7,7 +7,7 @@ import pytest
 
 import lensforge as lf
 from lensforge.errors import ConfigError
-from lensforge.manufacturing.tolerances import (
+from lensforge.asbuilt.tolerances import (
     DEFAULT_TOLERANCES_FILE,
     Tolerances,
     load_tolerances,
@@ -228,7 +228,7 @@ def test_registry_builds_tolerances_ranges_and_file_layout():
     import dataclasses
     import tomllib
 
-    from lensforge.manufacturing.tolerances import COMPONENT_SPECS, TOLERANCE_RANGES
+    from lensforge.asbuilt.tolerances import COMPONENT_SPECS, TOLERANCE_RANGES
 
     attrs = [f.attr for c in COMPONENT_SPECS.values() for f in c.fields]
     assert [f.name for f in dataclasses.fields(Tolerances)] == attrs

@@ -57,7 +57,7 @@ from ..errors import CalibrationError
 from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, rotations
 from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
-from .lens_params import LensParameterisation
+from ..asbuilt.lens_params import LensParameterisation
 
 __all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_calibrate_from", "joint_information", "pose_chain", "chain_jacobians",
            "simulate_joint_data"]

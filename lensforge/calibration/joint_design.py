@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .joint import chain_jacobians
-from .lens_params import LensParameterisation
+from ..asbuilt.lens_params import LensParameterisation
 
 __all__ = ["JointDesign", "candidate_information", "predicted_joint_uncertainty", "design_joint_poses",
            "box_candidates"]

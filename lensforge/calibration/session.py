@@ -49,7 +49,7 @@ from ..optics.zernike import from_thorlabs_vector
 from . import formats
 from .handeye import solve_handeye
 from .joint_design import candidate_information, design_joint_poses
-from .lens_params import parameterise
+from ..asbuilt.lens_params import parameterise
 from .pose_design import candidate_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
@@ -57,7 +57,7 @@ from .session_joint import joint_session, resolve_tolerances
 from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict, std_dict
 
 if TYPE_CHECKING:
-    from ..manufacturing.tolerances import Tolerances
+    from ..asbuilt.tolerances import Tolerances
 
 __all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
            "two_stage", "calibrate", "estimate", "load_design_lens",

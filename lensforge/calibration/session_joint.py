@@ -33,10 +33,10 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from ..errors import CalibrationError, LensforgeError
-from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
 from ..optics.pose import invert_poses, matrix_to_pose
 from .joint import JointProblem, joint_calibrate
-from .lens_params import parameterise
+from ..asbuilt.lens_params import parameterise
 from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, std_dict
 
 __all__ = ["JointFrames", "best_joint_fit", "joint_session", "resolve_tolerances"]

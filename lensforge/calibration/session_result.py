@@ -152,49 +152,10 @@ class CalibrationResult:
         fit chi2/dof; joint: the robot pose error chi2 a^T Sigma_A^-1 a (6 DOF) and the
         whitened Zernike residual chi2 / m; each with its expectation and the outlier
         threshold; outliers in red, poses left out named below."""
-        import io
+        from ..plots.calibration import plot_calibration_residuals
+        from ..plots.figure import png_bytes
 
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        ids = [p["pose"] for p in self.per_pose]
-        he = np.array([p["handeye_chi2"] if p["handeye_chi2"] is not None else np.nan for p in self.per_pose])
-        ec = np.array([p["estimate_chi2_dof"] for p in self.per_pose])
-        col = ["tab:red" if p["outlier"] else "tab:blue" for p in self.per_pose]
-        joint = "n_zernike_modes" in self.extra
-        top_thr, bottom_thr = self.outlier_threshold, float("nan")
-        labels = ("hand-eye residual chi2 (6 DOF)", "lens-pose fit chi2/dof")
-        if joint:
-            m = self.extra["n_zernike_modes"]
-            top_thr, bottom_thr = float("nan"), self.extra["outlier_threshold_zernike_chi2"] / m
-            labels = ("robot pose error chi2\n(6 DOF, vs repeatability)", f"Zernike residual chi2/m\n(m = {m} modes)")
-        fig, ax = plt.subplots(2, 1, figsize=(max(6, 0.35 * len(ids) + 2), 6), sharex=True)
-        ax[0].bar(ids, he, color=col)
-        ax[0].axhline(6.0, color="k", lw=0.8, ls=":",
-                      label="prior mean (6; fitted errors fall below)" if joint else "expected (6 DOF)")
-        ax[1].bar(ids, ec, color=col)
-        ax[1].axhline(1.0, color="k", lw=0.8, ls=":", label="expected (1)")
-        for a, thr in ((ax[0], top_thr), (ax[1], bottom_thr)):
-            if np.isfinite(thr):
-                a.axhline(thr, color="tab:red", lw=0.8, ls="--", label="outlier threshold")
-        ax[0].set_ylabel(labels[0])
-        ax[0].set_yscale("log")
-        ax[1].set_ylabel(labels[1])
-        for a in ax:
-            a.legend(fontsize=8)
-        ax[0].set_title(f"{self.method}: chi2/dof = {self.chi2_dof:.3g}, p = {self.p_value:.2g}, "
-                        f"{len(self.poses_used)} poses used")
-        left_out = [r["pose"] for r in self.poses_rejected]
-        ax[1].set_xlabel("pose id (red: flagged outlier)"
-                         + (f"; left out: {', '.join(left_out[:12])}" if left_out else ""))
-        ax[1].tick_params(axis="x", labelrotation=90)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=120)
-        plt.close(fig)
-        return buf.getvalue()
+        return png_bytes(plot_calibration_residuals(self))
 
     def files(self) -> dict:
         """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""

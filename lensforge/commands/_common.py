@@ -20,6 +20,16 @@ def info(message: str) -> None:
     typer.echo(message, err=True)
 
 
+# help texts name the registries without importing them (scipy): `lensforge --help` stays fast
+ROBOT_HELP = ("robot model: a name of calibration.robot.ROBOTS (kr10_r1100_sixx, ur5e) or a robot TOML "
+              "(default kr10_r1100_sixx)")
+
+
+def bench_arg(path: str | None) -> Bench | None:
+    """The bench from --bench PATH, or None (the command then uses the design's bench)."""
+    return load_bench(path) if path else None
+
+
 def load_bench_arg(path: str | None, resolved: ResolvedLens | None = None) -> Bench:
     """The bench from --bench PATH, else the one stored in the design file, else the default."""
     override = load_bench(path) if path else None

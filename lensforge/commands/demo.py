@@ -32,7 +32,7 @@ def demo(
     Evaluates the paper lenses, designs a Zernike lens, exports it, verifies it as built."""
     from ..design.design_file import save_design
     from ..design.optimize import DEFAULT_MAX_EVALS, optimize_design
-    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
+    from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
     from ..optics.bench import Bench
     from ..verification.statistics import format_counts
     from ..verification.study import verify

@@ -61,7 +61,7 @@ def design(
     from ..design.design_file import save_design
     from ..design.optimize import optimize_design
     from ..design.robust import RobustSpec
-    from ..manufacturing.tolerances import load_tolerances
+    from ..asbuilt.tolerances import load_tolerances
 
     b = load_bench_arg(bench)
     spec = None
@@ -108,7 +108,7 @@ def plot(
     and the optimiser's convergence history."""
     from ..design.design_file import load_design
     from ..optics.lens import resolve_lens
-    from ..plots import design_plots
+    from ..plots.design import design_plots
 
     r = resolve_lens(design_file)
     obj, stem = ((load_design(design_file), Path(design_file).stem) if "model" in r.data  # a design file:

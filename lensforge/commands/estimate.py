@@ -1,5 +1,5 @@
-"""``lensforge estimate-study`` (pose-estimation study, Fig. 5 / Table 2) and
-``lensforge scenario`` (the paper's hand-eye calibration procedure, simulated)."""
+"""``lensforge estimate`` (one lens pose with its covariance, from a WFS file) and
+``lensforge estimate-study`` (pose-estimation accuracy against the CRLB, Fig. 5 / Table 2)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,13 @@ import json
 from pathlib import Path
 from typing import List, Optional
 
+import numpy as np
 import typer
 
 from ..errors import ConfigError
 from ..fileio import check_output, staged_dir, write_atomic
 from ..progress import progress_bar
-from ._common import MAX_TRIALS, check_seed, emit_json, info, load_bench_arg
+from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, info, load_bench_arg
 
 
 def estimate_study(
@@ -62,47 +63,30 @@ def estimate_study(
         info(format_table(results))
         info("files: " + ", ".join(str(p) for p in paths.values()))
 
-def scenario(
-    lens: str = typer.Argument("extended_polynomial", help="paper lens name or design JSON file"),
-    design: str = typer.Option("both", "--poses", help="calibration poses: random, oed or both"),
-    runs: int = typer.Option(20, "--runs", help="simulated calibrations per pose set (for the observed spread)"),
-    method: str = typer.Option("lm", "--method", help="pose estimator: lm | ukf (the registry ESTIMATORS in calibration/pose_estimation.py)"),
-    seed: int = typer.Option(0, "--seed", help="random seed"),
-    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's bench or the built-in default)"),
-    out: Path = typer.Option(Path("exports/scenario"), "-o", "--out", help="output folder (JSON)"),
-    json_out: bool = typer.Option(False, "--json", help="machine-readable JSON on stdout"),
-    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
+
+def estimate_cmd(
+    design: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
+    measurement: Path = typer.Option(..., "--measurement", "-m", help="WFS Zernike CSV/JSON (one pose, or --pose)"),
+    pose: Optional[str] = typer.Option(None, "--pose", help="pose id to use when the file holds several"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
 ) -> None:
-    """The paper's calibration procedure in simulation.
+    """Estimate one lens pose with its covariance.
 
-    12 convergence poses, 12 calibration poses, lens poses estimated from noisy measurements, hand-eye
-    solved with the estimator covariances; Z error vs its predicted bound."""
-    from ..calibration.pose_estimation import ESTIMATORS
-    from ..optics.lens import resolve_lens
-    from ..verification.scenario import ScenarioConfig, compare_pose_designs, format_comparison
+    The pose is relative to the lens's nominal placement: translation (um), rotation (mrad)."""
+    from ..calibration.session import estimate
+    from ..optics.pose import DOF_NAMES
 
-    if design not in ("random", "oed", "both"):
-        raise ConfigError(f"--poses: {design!r} is not random, oed or both")
-    if method not in ESTIMATORS:
-        raise ConfigError(f"--method: {method!r} is not one of {', '.join(ESTIMATORS)}")
-    if runs < 1:
-        raise ConfigError(f"--runs: must be >= 1, got {runs}")
-    check_seed(seed)
-    if runs > MAX_TRIALS:
-        raise ConfigError(f"--runs: {runs} is over the limit of {MAX_TRIALS}")
-    r = resolve_lens(lens)
-    lens_obj = r.lens
-    b = load_bench_arg(bench, r)
-    check_output(Path(out) / "scenario.json", folder=False)
-    cfg = ScenarioConfig(estimator=method)
-    designs = ("random", "oed") if design == "both" else (design,)
-    with progress_bar(runs * len(designs), f"calibrations ({', '.join(designs)} poses)",
-                      not (no_progress or json_out)) as bar:
-        rep = compare_pose_designs(b, lens_obj, cfg, designs=designs, runs=runs, seed=seed, tick=bar.advance)
-    rep = {"schema_version": 1, "lens": lens, **rep}
-    path = write_atomic(Path(out) / "scenario.json", json.dumps(rep, indent=2, allow_nan=False))
+    r = estimate(design, measurement, bench=bench_arg(bench), pose_id=pose)
+    e = r["estimate"]
+    std = e.std
+    info(f"pose {r['pose_id']}: chi2/dof = {e.chi2_dof:.3g}, {'converged' if e.converged else 'NOT converged'}")
+    for k, name in enumerate(DOF_NAMES):
+        if k < 3:
+            info(f"  {name} = {e.pose[k] * 1e3:10.2f} um  +- {std[k] * 1e3:.2f} um")
+        else:
+            info(f"  {name} = {e.pose[k] * 1e3:10.4f} mrad +- {std[k] * 1e3:.4f} mrad")
     if json_out:
-        emit_json({**rep, "files": {"json": str(path)}})
-    else:
-        info(format_comparison(rep))
-        info(f"files: {path}")
+        emit_json({"schema_version": 1, "pose_id": r["pose_id"], **e.to_dict(),
+                   "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in e.cov],
+                   "cov_units": "mm and rad, pose vector (tx, ty, tz, rx, ry, rz)"})

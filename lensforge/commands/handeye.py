@@ -28,7 +28,7 @@ import typer
 
 from ..errors import ConfigError
 from ..fileio import dumps_json, read_json
-from ..schema import POSE_TRANSLATION, Num, check_header, number, number_array
+from ..input_checks import POSE_TRANSLATION, Num, check_header, number, number_array
 from ._common import emit_json, info
 
 _NOISE_KEYS = ("robot_sigma_trans_mm", "robot_sigma_rot_deg", "lens_sigma_trans_mm", "lens_sigma_rot_deg")
@@ -203,7 +203,8 @@ def handeye_cmd(
         paths = write_bundle(out, {"handeye.json": dumps_json(result) + "\n", "easy_handeye.yaml": easy_handeye_yaml(res.Z)})
         info("files: " + ", ".join(str(v) for v in paths.values()))
     if plot is not None:
-        from ..plots import plot_handeye_residuals, save_figure
+        from ..plots.calibration import plot_handeye_residuals
+        from ..plots.figure import save_figure
 
         title = f"{Path(poses).name}: hand-eye residuals per pose ({res.method}, chi2/dof {res.chi2_dof:.3g})"
         info(f"wrote {save_figure(plot_handeye_residuals(res.residuals, res.residual_chi2, title), plot)}")

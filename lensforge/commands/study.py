@@ -14,7 +14,7 @@ from ._common import MAX_TRIALS, check_seed, emit_json, info
 
 
 def _tolerances(path):
-    from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+    from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
 
     if path is None:
         return load_tolerances(DEFAULT_TOLERANCES_FILE) if Path(DEFAULT_TOLERANCES_FILE).exists() else Tolerances()
@@ -75,7 +75,7 @@ def study_cmd(
     (Z error in mm and deg)."""
     from ..verification.statistics import format_counts
     from ..verification.study import StudyConfig, load_plan, verify
-    from ..verification.study_plots import plot_error_histograms
+    from ..plots.study import plot_error_histograms
 
     tol = _tolerances(tolerances)
     plan = load_plan(pose_plan) if pose_plan is not None else None
@@ -155,7 +155,7 @@ def budget_cmd(
     from ..verification.budget import sensitivity_analysis, tolerance_budget
     from ..verification.runner import dask_client
     from ..verification.study import StudyConfig
-    from ..verification.study_plots import plot_budget, plot_sensitivity
+    from ..plots.study import plot_budget, plot_sensitivity
 
     tol = _tolerances(tolerances)
     _check_sizes(seed, lenses, workers)

@@ -35,7 +35,7 @@ from ..errors import ConfigError
 from ..fileio import read_json, write_atomic
 from ..optics.bench import Bench
 from ..optics.lens import Lens, lens_conventions
-from ..schema import DESIGN_KIND, Num, check_header, number, number_array
+from ..input_checks import DESIGN_KIND, Num, check_header, number, number_array
 
 if TYPE_CHECKING:
     from ..optics.sensitivity import Metrics

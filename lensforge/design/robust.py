@@ -31,7 +31,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ConfigError, LensforgeError, LensGeometryError
-from ..manufacturing.tolerances import Tolerances, load_tolerances, sample_as_built
+from ..asbuilt.tolerances import Tolerances, load_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import Lens, polar_grid
 from ..optics.pose import DOF_NAMES

@@ -20,7 +20,7 @@ import tomli_w
 
 from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
-from ..schema import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
+from ..input_checks import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
 
 __all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench",
            "write_atomic"]
@@ -63,7 +63,7 @@ class Sensor:
     sub-aperture mean irradiance is at least this fraction of the input beam's peak
     (exp(-2), the 1/e^2 level; ASSUMPTION).
 
-    What a lenslet measures (``sensor_range.py``): its spot centroid, i.e. the
+    What a lenslet measures (``centroid.py``): its spot centroid, i.e. the
     irradiance-weighted mean slope over its square sub-aperture, integrated by a
     ``subaperture_quadrature`` x ``subaperture_quadrature`` Gauss-Legendre rule of aimed
     rays (1 = the old lenslet-centre sample).
@@ -81,7 +81,7 @@ class Sensor:
     centroid_window_px: side of the square pixel window, centred on the spot, in which
     the centroid is taken (ASSUMPTION 27 px = one 150 um pitch; 0 = complete-spot
     centroid); centroid_threshold: noise cut as a fraction of the spot peak
-    subtracted before the centroid (ASSUMPTION 0, see ``sensor_range.py``).
+    subtracted before the centroid (ASSUMPTION 0, see ``centroid.py``).
     """
 
     pitch_mm: float = 0.150

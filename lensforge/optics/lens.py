@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import ConfigError, LensGeometryError
 from ..fileio import read_json
-from ..schema import DESIGN_KIND, LENS_RANGES, check_header, check_ranges
+from ..input_checks import DESIGN_KIND, LENS_RANGES, check_header, check_ranges
 from .bench import Bench
 from .materials import Material, load_material
 from .surfaces import Conic, ExtendedPolynomial, Polynomial, Surface, ZernikeSag, surface_from_dict

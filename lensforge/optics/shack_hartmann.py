@@ -2,7 +2,7 @@
 
 The sensor samples the wavefront at each lenslet of a fixed circular pupil in {S}
 (centre and radius from the bench). Each lenslet reports its spot centroid: the
-irradiance-weighted mean slope over its square sub-aperture (``sensor_range.py``
+irradiance-weighted mean slope over its square sub-aperture (``centroid.py``
 documents the centroid model). lensforge aims one beam ray at each point of a
 Gauss-Legendre rule over every sub-aperture (Newton iteration on the beam
 coordinates, ``trace.aim_rays``), so the model varies smoothly with the pose and
@@ -34,7 +34,8 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .sensor_range import SensorRange, centroid_slopes, quadrature_rule, range_use, summarize_range, window_gain
+from .centroid import centroid_slopes, quadrature_rule, window_gain
+from .sensor_range import SensorRange, range_use, summarize_range
 from .trace import AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, lens_kernel, trace_rays
 from .zernike import modes_up_to_order, zernike_gradient
 
@@ -141,7 +142,7 @@ class ZernikeResult:
     """Forward-model output for P poses.
 
     z: (P, m) Zernike coefficients (um, Noll modes ``modes``); slopes: (P, n, 2) rad
-    centroid slopes (sensor_range.py's centroid model); irradiance: (P, n) sub-aperture mean relative
+    centroid slopes (centroid.py); irradiance: (P, n) sub-aperture mean relative
     to the input beam peak; status: (P, n) ray codes (worst over the sub-aperture);
     valid: (P,) all lenslets traced, lit and assignable; uv: (P, n*q, 2) aimed beam
     coordinates of the q quadrature points per lenslet (warm start for nearby poses);

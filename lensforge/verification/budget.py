@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import ConfigError
-from ..manufacturing.tolerances import COMPONENT_SPECS
+from ..asbuilt.tolerances import COMPONENT_SPECS
 from ..optics.lens import LensSpec, resolve_lens
 from .runner import dask_client
 from .study import StudyConfig, resolve_tolerances, verify
@@ -33,7 +33,7 @@ from .study import StudyConfig, resolve_tolerances, verify
 if TYPE_CHECKING:
     from distributed import Client
 
-    from ..manufacturing.tolerances import Tolerances
+    from ..asbuilt.tolerances import Tolerances
     from ..optics.bench import Bench
 
 __all__ = ["SensitivityRow", "BudgetRow", "Budget", "sensitivity_analysis", "tolerance_budget", "scaled_all",

@@ -21,7 +21,6 @@ same true poses and noise for every lens and method (common random numbers).
 
 from __future__ import annotations
 
-import io
 import json
 import time
 import warnings
@@ -40,7 +39,7 @@ from ..optics.shack_hartmann import ForwardModel
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
 from ..display import UNOBSERVABLE, UNOBSERVABLE_NOTE
-from .statistics import box_stats, median
+from .statistics import median
 
 __all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
            "SCHEMA_VERSION"]
@@ -275,42 +274,6 @@ def study_to_dict(results: list[LensStudy], **meta) -> dict:
     return clean({"schema_version": SCHEMA_VERSION, **meta, "lenses": [r.summary() for r in results]})
 
 
-def plot_study(results: list[LensStudy], path) -> "Path":
-    """Fig. 5-style box plot: per DOF, the error of every lens (um / urad). Written atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), constrained_layout=True)
-    labels = [f"{r.name}\n({r.method})" for r in results]
-    for j, ax in enumerate(axes.flat):
-        unit, sc = ("um", 1e3) if j < 3 else ("urad", 1e6)
-        boxes = []
-        for r in results:
-            e = r.errors[r.ok, j] * sc if DOF_NAMES[j] not in r.unobservable else np.array([])
-            boxes.append(box_stats(e))
-        ax.bxp(boxes, showfliers=True, flierprops={"markersize": 2})
-        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7, rotation=20)
-        ax.axhline(0.0, color="0.6", lw=0.6)
-        ax.set_title(f"{DOF_NAMES[j]} error ({unit})", fontsize=9)
-        for k, r in enumerate(results):
-            cv = r.crlb_var[r.ok, j]
-            if DOF_NAMES[j] not in r.unobservable and np.isfinite(cv).any():
-                b = np.sqrt(np.nanmean(cv[np.isfinite(cv)])) * sc
-                ax.hlines([-b, b], k + 0.7, k + 1.3, colors="C3", linestyles="--", lw=0.8,
-                          label="+-1 CRLB std" if k == 0 or not ax.get_legend_handles_labels()[0] else None)
-            if DOF_NAMES[j] in r.unobservable:
-                ax.text(k + 1, 0, "unobservable", ha="center", va="center", fontsize=6, rotation=90, color="C3")
-    axes.flat[0].legend(fontsize=7, loc="upper right")
-    n = len(results[0].status) if results else 0
-    fig.suptitle(f"Pose-estimation error over {n} trials per lens (estimate - truth)", fontsize=10)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=120)
-    plt.close(fig)
-    return write_atomic(path, buf.getvalue())
-
-
 def save_study(results: list[LensStudy], out_dir, stem: str = "estimate_study", **meta) -> dict:
     """Write <stem>.json (summary), <stem>_trials.csv (per trial) and <stem>.png; return paths."""
     from pathlib import Path
@@ -325,5 +288,7 @@ def save_study(results: list[LensStudy], out_dir, stem: str = "estimate_study", 
             vals = list(r.true_poses[i]) + list(r.errors[i]) + [r.chi2[i], r.nees[i]]
             rows.append(f"{r.name},{r.method},{i},{r.status[i]}," + ",".join(f"{v:.9g}" for v in vals))
     pc = write_atomic(out / f"{stem}_trials.csv", "\n".join(rows) + "\n")
-    pp = plot_study(results, out / f"{stem}.png")
+    from ..plots.study import plot_estimation_study
+
+    pp = plot_estimation_study(results, out / f"{stem}.png")
     return {"json": pj, "csv": pc, "png": pp}

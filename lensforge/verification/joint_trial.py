@@ -8,7 +8,7 @@ Zernike data and recorded flange poses. Both results are stored in the trial rec
 The joint estimator's prior on the as-built lens comes from the study's tolerance
 model (``prior_tolerances`` overrides it, e.g. to calibrate perfect lenses with
 the default prior). Its parameterisation theta is chosen once per study context
-from the calibration plan (``calibration.lens_params.parameterise``).
+from the calibration plan (``asbuilt.lens_params.parameterise``).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration.joint import joint_calibrate_from
-from ..calibration.lens_params import LensParameterisation, parameterise
+from ..asbuilt.lens_params import LensParameterisation, parameterise
 from ..errors import LensforgeError
 from ..optics.pose import matrix_to_pose, transform_error
 
@@ -26,7 +26,7 @@ __all__ = ["study_parameterisation", "joint_trial_record", "nees"]
 def study_parameterisation(bench, lens, tolerances, plan) -> LensParameterisation:
     """theta for a study: the leading directions over the plan under ``tolerances``
     (None or zero tolerances: no lens parameters, theta empty)."""
-    from ..manufacturing.tolerances import Tolerances
+    from ..asbuilt.tolerances import Tolerances
 
     return parameterise(bench, lens, tolerances if tolerances is not None else Tolerances.zero(), plan)
 

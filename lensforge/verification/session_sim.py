@@ -34,7 +34,7 @@ from ..calibration.formats import write_bundle
 from ..calibration.session import SCHEMA_VERSION, Plan, calibrate, frame_dict, load_design_lens, plan
 from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json
-from ..manufacturing.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
+from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import LensSpec
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs

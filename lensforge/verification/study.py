@@ -41,7 +41,7 @@ from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.pose_estimation import estimate_poses_batch
 from ..calibration.robot import flange_pose, lens_pose_matrix, paper_scene
 from ..errors import ConfigError, LensforgeError, PoseRangeError
-from ..manufacturing.tolerances import load_tolerances, sample_as_built
+from ..asbuilt.tolerances import load_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import Lens, LensSpec, resolve_lens
 from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
@@ -53,7 +53,7 @@ from .runner import TrialStore, config_hash, run_trials
 if TYPE_CHECKING:
     from distributed import Client
 
-    from ..manufacturing.tolerances import Tolerances
+    from ..asbuilt.tolerances import Tolerances
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "run_trial", "StudyContext", "summarize_errors",
            "SCHEMA_VERSION", "CALIBRATIONS", "calibration_records", "joint_statistics"]
@@ -152,7 +152,7 @@ class StudyContext:
 
         tol = self.tolerances
         if self.config.joint_prior == "default":
-            from ..manufacturing.tolerances import Tolerances
+            from ..asbuilt.tolerances import Tolerances
 
             tol = Tolerances()
         return study_parameterisation(self.bench, self.lens, tol, self.plan)

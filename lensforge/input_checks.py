@@ -215,7 +215,7 @@ LENS_RANGES = {
     "index_offset": Num(-0.5, 0.5, ""),
 }
 
-# Tolerances: each component's ranges live in its entry of manufacturing.tolerances.COMPONENT_SPECS
+# Tolerances: each component's ranges live in its entry of asbuilt.tolerances.COMPONENT_SPECS
 # (TOLERANCE_RANGES there), beside its default and draw.
 
 # Pose matrices: translations within a robot cell (ASSUMPTION: 100 m), rotation entries |r| <= 1.

@@ -1,4 +1,5 @@
-"""Plots of an as-built study: error histograms, sensitivity bars, budget chart.
+"""Plots of the studies: as-built error histograms, sensitivity bars, budget chart, and the
+pose-estimation study (Fig. 5 analogue).
 
 Matplotlib with the Agg backend (no display); every figure is written atomically
 as PNG. Axis labels carry units (mm, deg).
@@ -6,33 +7,14 @@ as PNG. Axis labels carry units (mm, deg).
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import numpy as np
 
-from ..fileio import write_atomic
-from .statistics import percentile
+from ..verification.statistics import percentile
+from .figure import new_figure, save_figure
 
-__all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget"]
-
-
-def _fig(*args, **kw):
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(*args, **kw)
-
-
-def _save(fig, path) -> Path:
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    return write_atomic(path, buf.getvalue())
+__all__ = ["plot_error_histograms", "plot_sensitivity", "plot_budget", "plot_estimation_study"]
 
 
 def _hist(ax, values, target, label, unit, stats: dict | None = None, percent: float = 95.0):
@@ -77,7 +59,8 @@ def plot_error_histograms(rot_err_deg, trans_err_mm, path, target_deg=None, targ
     so the plot shows the console's numbers, and its counts of failed lenses and of poses
     that did not converge or fell out of range are written under the plot.
     """
-    fig, (a1, a2) = _fig(1, 2, figsize=(10, 4.2))
+    fig = new_figure(figsize=(10, 4.2), layout="constrained")
+    a1, a2 = fig.subplots(1, 2)
     q = float((summary or {}).get("percentile", 95.0))
     _hist(a1, rot_err_deg, target_deg, "Z rotation error", "deg",
           None if summary is None else summary.get("rotation_deg"), q)
@@ -89,7 +72,7 @@ def plot_error_histograms(rot_err_deg, trans_err_mm, path, target_deg=None, targ
                   f"out of range, {summary.get('pupil_lost_poses', 0)} pupil lost")
         fig.text(0.5, -0.02, counts, ha="center", va="top", fontsize=9)
     fig.suptitle(title or "Calibration error over as-built lenses")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_sensitivity(rows: list[dict], path, title="") -> Path:
@@ -99,7 +82,8 @@ def plot_sensitivity(rows: list[dict], path, title="") -> Path:
     """
     names = [r["component"] for r in rows]
     y = np.arange(len(rows))
-    fig, (a1, a2) = _fig(1, 2, figsize=(10, 0.45 * len(rows) + 1.6), sharey=True)
+    fig = new_figure(figsize=(10, 0.45 * len(rows) + 1.6), layout="constrained")
+    a1, a2 = fig.subplots(1, 2, sharey=True)
     for ax, key, unit, col in ((a1, "p95_rot_deg", "deg", "tab:orange"), (a2, "p95_trans_mm", "mm", "tab:blue")):
         vals = np.array([r[key] if r[key] is not None else np.nan for r in rows], dtype=float)
         ax.barh(y, np.where(np.isfinite(vals), vals, 0.0), color=col)
@@ -113,7 +97,7 @@ def plot_sensitivity(rows: list[dict], path, title="") -> Path:
     a1.set_yticks(y, names)
     a1.invert_yaxis()
     fig.suptitle(title or "Sensitivity: one tolerance at a time (nominal size) and all together")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_budget(rows: list[dict], path, title="") -> Path:
@@ -122,7 +106,8 @@ def plot_budget(rows: list[dict], path, title="") -> Path:
     names = [r["component"] for r in rows]
     s = np.array([r["max_scale"] if r["max_scale"] is not None else np.nan for r in rows], dtype=float)
     y = np.arange(len(rows))
-    fig, ax = _fig(figsize=(7, 0.45 * len(rows) + 1.6))
+    fig = new_figure(figsize=(7, 0.45 * len(rows) + 1.6), layout="constrained")
+    ax = fig.subplots()
     colors = ["tab:green" if v >= 1 else "tab:red" for v in np.nan_to_num(s, nan=1e9)]
     ax.barh(y, np.where(np.isfinite(s), np.maximum(s, 1e-4), 1e4), color=colors)
     ax.axvline(1.0, color="k", lw=1, ls="--", label="given tolerance (scale 1)")
@@ -137,4 +122,36 @@ def plot_budget(rows: list[dict], path, title="") -> Path:
     ax.legend(handles=handles + ax.get_legend_handles_labels()[0], fontsize=8, loc="upper center",
               bbox_to_anchor=(0.5, -0.28), ncol=2, frameon=False)
     fig.suptitle(title or "Tolerance budget")
-    return _save(fig, path)
+    return save_figure(fig, path)
+
+
+def plot_estimation_study(results, path) -> Path:
+    """Fig. 5-style box plot: per DOF, the error of every lens (um / urad). Written atomically."""
+    from ..optics.pose import DOF_NAMES
+    from ..verification.statistics import box_stats
+
+    fig = new_figure(figsize=(12, 6.5), layout="constrained")
+    axes = fig.subplots(2, 3)
+    labels = [f"{r.name}\n({r.method})" for r in results]
+    for j, ax in enumerate(axes.flat):
+        unit, sc = ("um", 1e3) if j < 3 else ("urad", 1e6)
+        boxes = []
+        for r in results:
+            e = r.errors[r.ok, j] * sc if DOF_NAMES[j] not in r.unobservable else np.array([])
+            boxes.append(box_stats(e))
+        ax.bxp(boxes, showfliers=True, flierprops={"markersize": 2})
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7, rotation=20)
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        ax.set_title(f"{DOF_NAMES[j]} error ({unit})", fontsize=9)
+        for k, r in enumerate(results):
+            cv = r.crlb_var[r.ok, j]
+            if DOF_NAMES[j] not in r.unobservable and np.isfinite(cv).any():
+                b = np.sqrt(np.nanmean(cv[np.isfinite(cv)])) * sc
+                ax.hlines([-b, b], k + 0.7, k + 1.3, colors="C3", linestyles="--", lw=0.8,
+                          label="+-1 CRLB std" if k == 0 or not ax.get_legend_handles_labels()[0] else None)
+            if DOF_NAMES[j] in r.unobservable:
+                ax.text(k + 1, 0, "unobservable", ha="center", va="center", fontsize=6, rotation=90, color="C3")
+    axes.flat[0].legend(fontsize=7, loc="upper right")
+    n = len(results[0].status) if results else 0
+    fig.suptitle(f"Pose-estimation error over {n} trials per lens (estimate - truth)", fontsize=10)
+    return save_figure(fig, path)

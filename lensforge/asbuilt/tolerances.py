@@ -46,7 +46,7 @@ from scipy.special import gammaincinv
 
 from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
-from ..schema import Num, check_header, check_ranges
+from ..input_checks import Num, check_header, check_ranges
 from ..optics.lens import Lens
 from ..optics.materials import Material
 from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials

@@ -3,7 +3,7 @@
 Two layers:
 
 1. The *elementary* perturbations p (``LensSpace``): every deviation the tolerance
-   model (``manufacturing.tolerances``) draws, as additive parameters of one lens
+   model (``asbuilt.tolerances``) draws, as additive parameters of one lens
    builder: centre thickness (mm), index offset, cure shrinkage (linear fraction),
    per surface the polishing depth and edge roll-off (mm) and each form-error Noll
    mode (mm, RMS-normalised over the clear aperture; Z4 is the surface's power,
@@ -37,7 +37,7 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import ConfigError
-from ..manufacturing.tolerances import scale_canonical
+from .tolerances import scale_canonical
 from ..optics.lens import Lens
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials

@@ -1,6 +1,6 @@
-"""Plots (matplotlib, Agg backend, PNG). Generic building blocks that draw on an Axes
-or return a Figure, plus ``save_figure`` (atomic) and ``design_plots`` (the set for a
-design file). Other modules add their plots here the same way.
+"""Plots of a design: singular values, sag maps with the lit area, Zernike response, beam
+footprint over the working range, lenslet slope field, dimensioned cross-section and the
+design's convergence history; ``design_plots`` writes the set for a design file.
 
 Units are in every label: sag in mm, Zernike response in um of wavefront per 1 mm
 (translations) or per 1 deg (rotations).
@@ -11,39 +11,19 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from os import PathLike
-
-import io
 from pathlib import Path
 
 import numpy as np
 
+from ..optics.footprint import lit_outlines, sag_departure
+from .figure import new_figure, save_figure
+
 if TYPE_CHECKING:
-    from .design.design_file import Design
-    from .optics.lens import Lens
+    from ..design.design_file import Design
+    from ..optics.lens import Lens
 
-__all__ = ["new_figure", "save_figure", "plot_singular_values", "sag_departure", "plot_sag_maps",
-           "plot_zernike_response", "working_range_poses", "beam_footprint", "plot_beam_footprint",
-           "plot_lenslet_field", "plot_cross_section", "plot_convergence", "plot_handeye_residuals",
-           "design_plots"]
-
-
-def new_figure(*args, **kwargs):
-    """A matplotlib Figure (no pyplot state; Agg canvas)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(*args, **kwargs)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def save_figure(fig, path, dpi: int = 120) -> Path:
-    """Write a figure as PNG atomically; returns the path."""
-    from .fileio import write_atomic
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
-    return write_atomic(path, buf.getvalue())
+__all__ = ["plot_singular_values", "plot_sag_maps", "plot_zernike_response", "plot_beam_footprint",
+           "plot_lenslet_field", "plot_cross_section", "plot_convergence", "design_plots"]
 
 
 def plot_singular_values(ax, spectra: dict, title: str = "Singular values of the scaled, whitened S"):
@@ -58,18 +38,6 @@ def plot_singular_values(ax, spectra: dict, title: str = "Singular values of the
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return ax
-
-
-def sag_departure(surface, x, y, n_phi: int = 64):
-    """(sag, departure from rotational symmetry) at (x, y) in mm: the departure is the
-    sag minus its azimuthal mean on the circle of the same radius."""
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    z = surface.sag(x, y)
-    r = np.hypot(x, y)
-    phi = np.linspace(0.0, 2 * np.pi, n_phi, endpoint=False)
-    ring = surface.sag(r[..., None] * np.cos(phi), r[..., None] * np.sin(phi))
-    return z, z - ring.mean(axis=-1)
 
 
 def plot_sag_maps(lens, n: int = 121, lit=None):
@@ -106,7 +74,7 @@ def plot_sag_maps(lens, n: int = 121, lit=None):
 
 def plot_zernike_response(S, modes, pose_scales, title: str = "Zernike response per pose DOF"):
     """Figure: column j of S times the pose scale (um of wavefront per 1 mm / per 1 deg)."""
-    from .optics.pose import DOF_NAMES
+    from ..optics.pose import DOF_NAMES
 
     S = np.asarray(S, dtype=float)
     fig = new_figure(figsize=(12, 6.5), layout="constrained")
@@ -125,80 +93,6 @@ def plot_zernike_response(S, modes, pose_scales, title: str = "Zernike response 
         ax.grid(True, axis="y", alpha=0.3)
     fig.suptitle(title)
     return fig
-
-
-# --------------------------------------------------------------------------- beam on the lens
-
-def working_range_poses(range_mm: float, range_rad: float, n_random: int = 40, seed: int = 0) -> np.ndarray:
-    """Poses (P, 6) spanning the working range: nominal, +-range on each DOF alone, all
-    translation corners, and ``n_random`` uniform draws in the box (mm, rad)."""
-    scale = np.array([range_mm] * 3 + [range_rad] * 3, dtype=float)
-    poses = [np.zeros(6)]
-    for j in range(6):
-        for sgn in (-1.0, 1.0):
-            e = np.zeros(6)
-            e[j] = sgn * scale[j]
-            poses.append(e)
-    for corner in np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).reshape(3, -1).T:
-        poses.append(np.concatenate([corner * range_mm, np.zeros(3)]))
-    rng = np.random.default_rng(seed)
-    poses.extend(rng.uniform(-1.0, 1.0, (n_random, 6)) * scale)
-    return np.array(poses)
-
-
-def beam_footprint(bench, lens, poses, n_edge: int = 72, max_iter: int = 30) -> np.ndarray:
-    """Where the beam's 1/e^2 edge rays hit the front surface, in the lens frame {O}.
-
-    Rays start on the beam circle (diameter ``bench.laser.beam_diameter_mm``, centred on
-    the beam offset, direction from the beam slope) in {S}; each pose (P, 6) places the
-    lens (DESIGN.md), and Newton's method on the ray parameter finds the front-surface
-    hit. Returns (P, n_edge, 2) hit points (x, y) in {O} (mm); NaN where a ray misses.
-    """
-    from .optics.trace import pose_frames
-
-    poses = np.atleast_2d(np.asarray(poses, dtype=float))
-    R, t = pose_frames(bench, poses)
-    a = 0.5 * bench.laser.beam_diameter_mm
-    phi = np.linspace(0.0, 2 * np.pi, n_edge, endpoint=False)
-    ox, oy = bench.laser.offset_mm
-    sx, sy = bench.laser.slope
-    d_s = np.array([sx, sy, 1.0]) / np.sqrt(1.0 + sx * sx + sy * sy)
-    z_start = -bench.placement.distance_mm - 3.0 * lens.thickness - 10.0  # well before the lens
-    p_s = np.stack([ox + a * np.cos(phi), oy + a * np.sin(phi), np.full(n_edge, z_start)], axis=-1)
-    # into {O}: p_O = R^T (p_S - t)
-    p = np.einsum("pji,pnj->pni", R, p_s[None] - t[:, None, :])
-    d = np.einsum("pji,j->pi", R, d_s)[:, None, :]
-    cs = lens.front.canonical()
-    z0 = -0.5 * lens.thickness
-    s = (z0 - p[..., 2]) / d[..., 2]  # start at the vertex plane
-    for _ in range(max_iter):
-        x, y = p[..., 0] + s * d[..., 0], p[..., 1] + s * d[..., 1]
-        z, gx, gy = cs.sag_and_gradient(x, y)
-        g = p[..., 2] + s * d[..., 2] - (z0 + z)
-        dg = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
-        step = g / dg
-        s = s - step
-        if np.all(np.abs(step[np.isfinite(step)]) < 1e-12):
-            break
-    hit = np.stack([p[..., 0] + s * d[..., 0], p[..., 1] + s * d[..., 1]], axis=-1)
-    return np.where(np.isfinite(hit), hit, np.nan)
-
-
-def _outline(points: np.ndarray) -> np.ndarray:
-    """Closed convex-hull outline (K, 2) of 2-D points (NaNs dropped)."""
-    from scipy.spatial import ConvexHull
-
-    pts = points[np.all(np.isfinite(points), axis=1)]
-    hull = ConvexHull(pts)
-    v = pts[hull.vertices]
-    return np.vstack([v, v[:1]])
-
-
-def lit_outlines(bench, lens, range_mm: float, range_rad: float) -> dict:
-    """{"nominal": outline, "range": outline} of the beam footprint on the front surface (mm, {O})."""
-    fp = beam_footprint(bench, lens, working_range_poses(range_mm, range_rad))
-    nominal = np.vstack([fp[0], fp[0][:1]])
-    return {"nominal": nominal, "range": _outline(fp.reshape(-1, 2)), "footprints": fp}
 
 
 def plot_beam_footprint(lens, lit: dict, range_mm: float, range_rad: float):
@@ -243,8 +137,8 @@ def plot_lenslet_field(bench, lens, pose=None, step=None):
     Right: the change of the slopes for a pose step (default +1 pose scale in rz, the
     hardest DOF to observe), in urad. Lenslet grid around the pupil in grey.
     """
-    from .optics.pose import DOF_NAMES
-    from .optics.shack_hartmann import ForwardModel
+    from ..optics.pose import DOF_NAMES
+    from ..optics.shack_hartmann import ForwardModel
 
     fm = ForwardModel(bench, lens)
     pupil = fm.pupil
@@ -381,53 +275,15 @@ def plot_convergence(history, title: str = "Design convergence"):
     return fig
 
 
-def plot_handeye_residuals(residuals, residual_chi2=None, title: str = "Hand-eye residuals per pose"):
-    """Figure: per-pose residual e_i = log((Z B_i)^-1 A_i X) of a hand-eye solve:
-    translation (um) and rotation (mrad) components, and the whitened chi^2 per pose
-    against the chi^2(6) 95 % level. residuals: (n, 6) in mm and rad."""
-    from scipy.stats import chi2
-
-    e = np.asarray(residuals, dtype=float)
-    n = e.shape[0]
-    i = np.arange(1, n + 1)
-    rows = 3 if residual_chi2 is not None else 2
-    fig = new_figure(figsize=(max(7, 0.28 * n + 3), 2.6 * rows), layout="constrained")
-    width = 0.27
-    for k, (sl, scale, unit, what) in enumerate(((slice(0, 3), 1e3, "um", "translation"),
-                                                 (slice(3, 6), 1e3, "mrad", "rotation"))):
-        ax = fig.add_subplot(rows, 1, k + 1)
-        for c, comp in enumerate("xyz"):
-            ax.bar(i + (c - 1) * width, e[:, sl][:, c] * scale, width, label=f"{what} {comp}")
-        ax.axhline(0.0, color="k", lw=0.6)
-        ax.set_ylabel(f"{what} residual ({unit})")
-        ax.legend(fontsize=7, ncol=3)
-        ax.grid(True, axis="y", alpha=0.3)
-        ax.set_xticks(i)
-        ax.tick_params(axis="x", labelsize=7)
-    if residual_chi2 is not None:
-        ax = fig.add_subplot(rows, 1, 3)
-        c2 = np.asarray(residual_chi2, dtype=float)
-        lim = float(chi2.ppf(0.95, 6))
-        ax.bar(i, c2, color=np.where(c2 > lim, "tab:red", "tab:gray"))
-        ax.axhline(lim, color="tab:red", ls="--", lw=1, label=f"chi^2(6) 95 % = {lim:.1f}")
-        ax.set_ylabel("whitened chi^2 per pose")
-        ax.legend(fontsize=7)
-        ax.set_xticks(i)
-        ax.tick_params(axis="x", labelsize=7)
-    fig.axes[-1].set_xlabel("pose index")
-    fig.suptitle(title)
-    return fig
-
-
 def design_plots(design: "Design | Lens", out_dir: str | PathLike[str], stem: str | None = None) -> list[Path]:
     """Write the PNGs of a design (or lens) into out_dir: singular values, sag maps with
     the lit area, Zernike response, beam footprint over the working range, lenslet slope
     field, dimensioned cross-section and (for a design file) the convergence history.
     Returns the paths."""
-    from .optics.bench import Bench
-    from .optics.lens import Lens
-    from .optics.sensitivity import metrics
-    from .optics.shack_hartmann import lenslet_pupil
+    from ..optics.bench import Bench
+    from ..optics.lens import Lens
+    from ..optics.sensitivity import metrics
+    from ..optics.shack_hartmann import lenslet_pupil
 
     out = Path(out_dir)
     if isinstance(design, Lens):

@@ -1,0 +1,44 @@
+"""``lensforge simulate-session``: the files a real bench session writes, simulated, to rehearse
+``calibrate`` (a thin layer over ``verification.session_sim.simulate_session``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from ._common import ROBOT_HELP, bench_arg, check_seed, emit_json, info
+
+def simulate_session_cmd(
+    design: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
+    tolerances: str = typer.Option("default", "-t", "--tolerances",
+                                   help="tolerance TOML, 'default' (built-in) or 'none' (lens exactly as designed)"),
+    seed: int = typer.Option(0, "--seed", help="seed (same seed, same session)"),
+    robot: Optional[str] = typer.Option(None, "--robot", help=ROBOT_HELP),
+    n: int = typer.Option(12, "-n", "--poses", help="number of calibration poses"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
+    out: Path = typer.Option(..., "-o", "--out", help="output folder"),
+    json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+) -> None:
+    """Simulate a bench session's files to rehearse calibrate.
+
+    Writes robot_poses.csv, wfs_zernike.csv and truth.json."""
+    from ..calibration.formats import write_bundle
+    from ..calibration.session import frame_dict
+
+    from ..verification.session_sim import simulate_session
+
+    check_seed(seed)
+    tol = None if tolerances.lower() == "none" else tolerances
+    s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n)
+    paths = write_bundle(out, s.files())
+    info(f"session: {len(s.ids)} poses, {len(s.unlit)} unlit on the as-built lens"
+         + (f" ({', '.join(s.unlit)})" if s.unlit else ""))
+    info("files: " + ", ".join(str(v) for v in paths.values()))
+    info(f"next: lensforge calibrate {design} --measurements {paths['wfs_zernike.csv']} "
+         f"--robot-poses {paths['robot_poses.csv']}")
+    if json_out:
+        emit_json({"schema_version": 1, "poses": list(s.ids), "unlit": list(s.unlit),
+                   "Z": frame_dict(s.Z, np.zeros((6, 6)))["xyzabc"], "files": {k: str(v) for k, v in paths.items()}})
