@@ -20,7 +20,11 @@ def simulate_session_cmd(
     n: int = typer.Option(12, "-n", "--poses", help="number of calibration poses"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
+    sensor: str = typer.Option("model", "--sensor",
+                               help="what measures: 'model' (lensforge's forward model) or 'physical' (the full-array "
+                                    "physical-optics reference, slow: seconds per pose)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ) -> None:
     """Simulate a bench session's files to rehearse calibrate.
 
@@ -28,11 +32,18 @@ def simulate_session_cmd(
     from ..calibration.formats import write_bundle
     from ..calibration.session import frame_dict
 
-    from ..verification.session_sim import simulate_session
+    from ..errors import ConfigError
+    from ..progress import progress_bar
+    from ..verification.session_sim import SENSORS, simulate_session
 
     check_seed(seed)
+    if sensor not in SENSORS:
+        raise ConfigError(f"--sensor: must be one of {list(SENSORS)}, got {sensor!r}")
     tol = None if tolerances.lower() == "none" else tolerances
-    s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n)
+    with progress_bar(n if sensor == "physical" else 0, "physical sensor, poses",
+                      enabled=sensor == "physical" and not (json_out or no_progress)) as bar:
+        s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n,
+                             sensor=sensor, tick=bar.advance)
     paths = write_bundle(out, s.files())
     info(f"session: {len(s.ids)} poses, {len(s.unlit)} unlit on the as-built lens"
          + (f" ({', '.join(s.unlit)})" if s.unlit else ""))
@@ -40,5 +51,5 @@ def simulate_session_cmd(
     info(f"next: lensforge calibrate {design} --measurements {paths['wfs_zernike.csv']} "
          f"--robot-poses {paths['robot_poses.csv']}")
     if json_out:
-        emit_json({"schema_version": 1, "poses": list(s.ids), "unlit": list(s.unlit),
+        emit_json({"schema_version": 1, "poses": list(s.ids), "unlit": list(s.unlit), "sensor": sensor,
                    "Z": frame_dict(s.Z, np.zeros((6, 6)))["xyzabc"], "files": {k: str(v) for k, v in paths.items()}})

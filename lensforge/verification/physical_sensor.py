@@ -20,8 +20,8 @@ trace and lensforge's Zernike fit matrix.
 3. Angular-spectrum propagation (exact transfer function, no Fresnel or Fraunhofer
    approximation, zero padding ``pad_mm`` against wrap-around) over the lenslet focal
    length f to the camera; intensity integrated over 5.5 um pixels
-   (``samples_per_pixel`` field samples per pixel and axis; pixel edges on multiples of
-   the pixel from the sensor axis, ASSUMPTION: the camera is centred on the array).
+   (``samples_per_pixel`` field samples per pixel and axis; pixel edges at
+   ``camera_offset_px`` + multiples of the pixel from the sensor axis).
    Neighbours' light falls into every window and interferes there.
 4. Centroids: per pupil lenslet a ``sensor.centroid_window_px`` square window placed on
    whole pixels on the expected spot ('tracking', ASSUMPTION of the algorithm: start at
@@ -49,7 +49,7 @@ from ..optics.bench import Bench, Sensor
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, aim_rays, trace_rays
 
-__all__ = ["PhysicalSensor", "PhysicalMeasurement", "MlaField", "physical_measure", "physical_session_slopes",
+__all__ = ["PhysicalSensor", "PhysicalMeasurement", "MlaField", "physical_measure", "physical_session_slopes", "field_slopes",
            "ray_field", "plane_field", "spot_centroids", "reference_centroids", "lit_box"]
 
 APERTURES = ("square", "round")
@@ -61,24 +61,35 @@ class PhysicalSensor:
 
     aperture: 'square' (fully filled cells) or 'round'; lenslet_diameter_mm: the round
     aperture, 140 um (MLA150-5C spec sheet as cited in issue 21); samples_per_pixel:
-    field samples per camera pixel and axis (2: 2.75 um, Nyquist for 166 mrad of local
-    phase slope incl. the lenslet's own); margin_lenslets: lit lenslets beyond the pupil
-    lenslets' box; pad_mm: zero padding of the propagation grid; potential_degree,
+    field samples per camera pixel and axis (4: 1.375 um; the modes move by <= 0.4 sigma
+    from 4 to 5 and by up to 3 sigma from 2 to 4 on the paper's polynomial lens: the lenslet
+    edges' diffraction needs fine samples); margin_lenslets: lit lenslets beyond the pupil
+    lenslets' box; oversample: sub-sample shifts per axis of the camera field for the
+    pixel integral (``_camera_intensity``); pad_mm: zero padding of the propagation grid; potential_degree,
     ray_grid: the ray-field fit; reference: 'factory' or 'beam' (see the module);
-    tracking_iterations: window re-centrings; window_px / threshold: None = the bench's
+    camera_offset_px: the camera's pixel grid offset from the lenslet array along x and y
+    (ASSUMPTION 1/3 px: the alignment is not known; at 0 the central row's and column's
+    reference spots sit exactly on pixel corners, where an odd window's whole-pixel
+    placement is a tie that rounding decides);
+    tracking_iterations: window re-centrings; lit_stride: 1 lights the whole array at once;
+    s > 1 lights only every s-th lenslet along x and y at a time (s^2 runs), which takes the
+    neighbours' cross-talk out (a diagnostic, not a sensor); window_px / threshold: None = the bench's
     centroid_window_px / centroid_threshold; focal_mm: None = the bench's lenslet focal
     length (the true device's value may differ from what the model assumes).
     """
 
     aperture: str = "square"
     lenslet_diameter_mm: float = 0.140
-    samples_per_pixel: int = 2
-    margin_lenslets: int = 4
-    pad_mm: float = 0.6
+    samples_per_pixel: int = 4
+    margin_lenslets: int = 3
+    pad_mm: float = 0.5
     potential_degree: int = 14
     ray_grid: int = 160
     reference: str = "factory"
     tracking_iterations: int = 3
+    oversample: int = 1
+    lit_stride: int = 1
+    camera_offset_px: float = 1.0 / 3.0
     window_px: int | None = None
     threshold: float | None = None
     focal_mm: float | None = None
@@ -161,7 +172,7 @@ def _grid(sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray) -
     n = int(np.ceil(n / step) * step)
     while sfft.next_fast_len(n) != n:
         n += step
-    return (np.arange(n) - 0.5 * n + 0.5) * dx
+    return (np.arange(n) - 0.5 * n + 0.5) * dx + cfg.camera_offset_px * sensor.pixel_mm
 
 
 def _cell_fractions(x: np.ndarray, dx: float, centres: np.ndarray, width: float) -> np.ndarray:
@@ -192,16 +203,27 @@ def lenslet_transmission(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx:
     return mask * np.exp(-0.5j * k * r**2 / f)
 
 
-def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: float, spp: int) -> np.ndarray:
-    """Pixel intensities (Np, Np) [y, x] at distance f: angular spectrum, then spp x spp sample sums."""
+def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: float, spp: int,
+                      oversample: int = 1) -> np.ndarray:
+    """Pixel intensities (Np, Np) [y, x] at distance f: angular spectrum, then the intensity summed over
+    spp x spp field samples per pixel, each of them seen at oversample x oversample sub-sample shifts (the
+    band-limited field evaluated exactly there by a phase ramp on its spectrum: the intensity has twice the
+    field's bandwidth, so its midpoint sum needs the finer samples)."""
     n = len(x)
     dx = x[1] - x[0]
     fr = sfft.fftfreq(n, dx)
     arg = 1.0 / wavelength_mm**2 - fr[None, :] ** 2 - fr[:, None] ** 2
     kz = 2 * np.pi * (np.sqrt(np.clip(arg, 0.0, None)) - 1.0 / wavelength_mm)  # the plane-wave phase k f dropped
-    H = np.where(arg > 0, np.exp(1j * f * kz), 0.0)
-    U = sfft.ifft2(sfft.fft2(E, workers=1) * H, workers=1)
-    inten = U.real**2 + U.imag**2
+    spec = sfft.fft2(E, workers=1)
+    spec *= np.where(arg > 0, np.exp(1j * f * kz), 0.0)
+    inten = np.zeros((n, n))
+    shifts = (np.arange(oversample) + 0.5) / oversample - 0.5  # in samples
+    for sy in shifts:
+        ry = np.exp(2j * np.pi * fr * sy * dx)
+        for sx in shifts:
+            rx = np.exp(2j * np.pi * fr * sx * dx)
+            U = sfft.ifft2(spec * ry[:, None] * rx[None, :], workers=1)
+            inten += U.real**2 + U.imag**2
     m = n // spp
     return inten.reshape(m, spp, m, spp).sum(axis=(1, 3))
 
@@ -370,13 +392,29 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
                   start_mm: np.ndarray | None = None) -> np.ndarray:
     sensor = bench.sensor
     lam = bench.laser.wavelength_nm * 1e-6
+    f = cfg.focal(sensor)
     cx, cy = lit_box(sensor, cfg, centres)
     T = lenslet_transmission(field.x, sensor, cfg, cx, cy, lam)
-    inten = _camera_intensity(field.E * T, field.x, cfg.focal(sensor), lam, cfg.samples_per_pixel)
-    f = cfg.focal(sensor)
     start = centres + f * field.expected_slopes if start_mm is None else start_mm
-    return spot_centroids(inten, field.x, sensor.pixel_mm, cfg.samples_per_pixel, start, cfg.window(sensor),
-                          cfg.cut(sensor), cfg.tracking_iterations)
+    args = (field.x, sensor.pixel_mm, cfg.samples_per_pixel)
+    k = cfg.lit_stride
+    if k == 1:
+        inten = _camera_intensity(field.E * T, field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+        return spot_centroids(inten, *args, start, cfg.window(sensor), cfg.cut(sensor), cfg.tracking_iterations)
+    p = sensor.pitch_mm
+    ix = np.rint(field.x / p).astype(int) % k  # lattice class of the lenslet each sample belongs to
+    jx = np.rint(centres / p).astype(int) % k
+    out = np.empty_like(start)
+    for a in range(k):
+        for b in range(k):
+            lit = (ix[None, :] == a) & (ix[:, None] == b)
+            mine = (jx[:, 0] == a) & (jx[:, 1] == b)
+            if not mine.any():
+                continue
+            inten = _camera_intensity(field.E * T * lit, field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+            out[mine] = spot_centroids(inten, *args, start[mine], cfg.window(sensor), cfg.cut(sensor),
+                                       cfg.tracking_iterations)
+    return out
 
 
 @lru_cache(maxsize=16)

@@ -40,9 +40,22 @@ from ..optics.lens import LensSpec
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
+from .physical_sensor import PhysicalSensor, physical_measure
 
-__all__ = ["SimulatedSession", "simulate_session", "check_sessions", "session_outcome", "summarise_sessions",
+__all__ = ["SENSORS", "physical_config", "SimulatedSession", "simulate_session", "check_sessions", "session_outcome", "summarise_sessions",
            "NEES_3SIGMA_6DOF"]
+
+SENSORS = ("model", "physical")
+
+
+def physical_config(sensor: str | PhysicalSensor) -> PhysicalSensor | None:
+    """The physical sensor's settings for ``sensor`` ("model": None)."""
+    if isinstance(sensor, PhysicalSensor):
+        return sensor
+    if sensor not in SENSORS:
+        raise ConfigError(f"sensor: must be one of {list(SENSORS)}, got {sensor!r}")
+    return PhysicalSensor() if sensor == "physical" else None
+
 
 # ASSUMPTION (as verification/scenario.py): 1-sigma CAD error of the sensor placement Z
 SENSOR_CAD_TRANSLATION_MM = 0.2
@@ -82,8 +95,13 @@ class SimulatedSession:
 
 def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
                      bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
-                     grasp: InitialPoseModel | None = None, session_plan: Plan | None = None) -> SimulatedSession:
+                     grasp: InitialPoseModel | None = None, session_plan: Plan | None = None,
+                     sensor: str | PhysicalSensor = "model", tick=None) -> SimulatedSession:
     """Simulate one bench session (see the module docstring).
+
+    sensor: "model" (lensforge's forward model measures), "physical" (the full-array physical
+    reference model, ``physical_sensor``, default settings) or a PhysicalSensor; the physical
+    sensor takes ~seconds per pose and calls ``tick()`` after each.
 
     tolerances: Tolerances, a TOML path, "default" (the default tolerance file) or
     None (the lens exactly as designed); seed: everything random flows from it;
@@ -111,8 +129,16 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
     x_true = matrix_to_pose(invert_poses(scene.T_SO_nominal) @ B_true)
     model = ForwardModel(bench, as_built, validate=False)
     res = model.evaluate(x_true, check_range=False)
+    clean = res.slopes
+    phys = physical_config(sensor)
+    if phys is not None:  # lit poses measured by the physical sensor; the lit verdict stays the model's
+        clean = np.array(clean)
+        for i in np.flatnonzero(res.valid):
+            clean[i] = physical_measure(model, x_true[i], phys).slopes
+            if tick is not None:
+                tick()
     sigma = bench.noise.slope_sigma_urad * 1e-6
-    slopes = res.slopes + np.random.default_rng(ss_sensor).normal(0.0, sigma, res.slopes.shape)
+    slopes = clean + np.random.default_rng(ss_sensor).normal(0.0, sigma, res.slopes.shape)
     z = model.pupil.fit(slopes)
     lit = np.asarray(res.valid, bool)
     zt = np.array([to_thorlabs_vector(np.concatenate([[1], model.modes]), np.concatenate([[0.0], zi])) for zi in z[lit]])
@@ -129,7 +155,8 @@ NEES_3SIGMA_6DOF = float(chi2_dist.ppf(math.erf(3 / math.sqrt(2)), 6))
 
 
 def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=None, method: str = "joint",
-                    calibration_tolerances="default", folder: Path | None = None) -> dict:
+                    calibration_tolerances="default", folder: Path | None = None,
+                    sensor: str | PhysicalSensor = "model") -> dict:
     """Simulate the session of ``seed`` on ``session_plan``, calibrate it through the
     files a real session writes (in ``folder``, default a temporary one) and score Z.
 
@@ -137,7 +164,8 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
     perturbation, 6 DOF), "inside_3sigma_each_axis": all six parent-frame components
     within 3 reported sigma, "chi2_dof", "p_value", "z_translation_error_mm",
     "z_rotation_error_deg", "start": the joint fit's start (or None)}."""
-    s = simulate_session(lens, tolerances=tolerances, seed=seed, bench=bench, session_plan=session_plan)
+    s = simulate_session(lens, tolerances=tolerances, seed=seed, bench=bench, session_plan=session_plan,
+                         sensor=sensor)
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_bundle(Path(folder or tmp) / f"s{seed}", s.files())
         try:
@@ -172,7 +200,8 @@ def summarise_sessions(outcomes) -> dict:
 
 def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
                    robot: RobotModel | str | None = None, n: int = 12, method: str = "joint",
-                   calibration_tolerances="default", progress=None, plan_seed: int | None = None) -> dict:
+                   calibration_tolerances="default", progress=None, plan_seed: int | None = None,
+                   sensor: str | PhysicalSensor = "model") -> dict:
     """Simulate ``n_sessions`` seeded sessions (seeds seed .. seed + n_sessions - 1, one
     shared plan of seed ``plan_seed``, default ``seed``), calibrate each through the
     files a real session writes, and score Z (``session_outcome``).
@@ -191,7 +220,7 @@ def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, b
     outcomes = []
     for k in range(n_sessions):
         outcomes.append(session_outcome(lens, bench, p, seed + k, tolerances=tolerances, method=method,
-                                        calibration_tolerances=calibration_tolerances))
+                                        calibration_tolerances=calibration_tolerances, sensor=sensor))
         if progress is not None:
             progress(k + 1, n_sessions)
     return summarise_sessions(outcomes)

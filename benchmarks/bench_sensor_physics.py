@@ -1,0 +1,99 @@
+"""lensforge's fast sensor model against the full-array physical reference (issue 21).
+
+Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design DESIGN.json]
+     [--lenses polynomial,extended_polynomial] [--poses 4] [--variants base,cut5,round,noxtalk]
+     [--spp 4] [--json OUT.json]
+
+Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
+extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
+the per-mode difference physical - model in sigma of lensforge's own measurement noise (sqrt of
+diag R) and in nm, per reference-model variant:
+  base     square, fully filled lenslets, no noise cut (the bench's defaults)
+  cut5     a 5 % per-spot noise cut (sensor.centroid_threshold = 0.05, model and reference alike)
+  round    round 140 um lenslets with dark gaps
+  noxtalk  cross-talk taken out (every 3rd lenslet lit at a time): what remains is pixelisation,
+           whole-pixel window placement and truncation
+  f41/f67  lenslet focal length 4.1 / 6.7 mm (model and reference alike)
+Also the cost of one physical pose and of the fast model's S(p).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+import lensforge as lf
+from lensforge.calibration.session import load_design_lens, plan
+from lensforge.optics.shack_hartmann import ForwardModel
+from lensforge.verification.physical_sensor import PhysicalSensor, physical_measure
+
+VARIANTS = {
+    "base": ({}, {}),
+    "cut5": ({"centroid_threshold": 0.05}, {}),
+    "round": ({}, {"aperture": "round"}),
+    "noxtalk": ({}, {"lit_stride": 3}),
+    "f41": ({"lenslet_focal_mm": 4.1}, {}),
+    "f67": ({"lenslet_focal_mm": 6.7}, {}),
+}
+
+
+def extreme_poses(lens, bench, k: int) -> np.ndarray:
+    """Nominal plus the k plan poses farthest from nominal (in pose scales)."""
+    p = plan(lens, bench=bench, n=12, seed=0, tolerances=None)
+    x = np.asarray(p.x)
+    order = np.argsort(-np.max(np.abs(x) / np.asarray(bench.pose_scales), axis=1))
+    return np.vstack([np.zeros(6), x[order[:k]]])
+
+
+def compare(lens, bench, poses, variant: str, spp: int) -> dict:
+    sensor_changes, phys_changes = VARIANTS[variant]
+    b = bench.replace(sensor=sensor_changes) if sensor_changes else bench
+    model = ForwardModel(b, lens)
+    cfg = PhysicalSensor(samples_per_pixel=spp, **phys_changes)
+    sig = np.sqrt(np.diag(model.noise_cov))
+    res = model.evaluate(poses, check_range=False)
+    rows = []
+    for i, x in enumerate(poses):
+        t0 = time.perf_counter()
+        r = physical_measure(model, x, cfg)
+        dt = time.perf_counter() - t0
+        dz = r.z - res.z[i]
+        rows.append({"pose": x.tolist(), "valid": bool(res.valid[i]), "max_slope_mrad": float(np.abs(res.slopes[i]).max() * 1e3),
+                     "dz_sigma": (dz / sig).tolist(), "dz_nm": (dz * 1e3).tolist(), "seconds": dt,
+                     "z_model_um": res.z[i].tolist(), "z_physical_um": r.z.tolist(),
+                     "potential_residual_urad": list(r.potential_residual_urad)})
+    return {"modes": model.modes.tolist(), "sigma_nm": (sig * 1e3).tolist(), "rows": rows}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--design", default=None)
+    ap.add_argument("--lenses", default="polynomial,extended_polynomial")
+    ap.add_argument("--poses", type=int, default=4)
+    ap.add_argument("--variants", default="base,cut5,round,noxtalk")
+    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    lenses = ([("design", a.design)] if a.design else []) + [(n, n) for n in a.lenses.split(",") if n]
+    out = {}
+    for label, spec in lenses:
+        lens, bench = load_design_lens(spec)
+        poses = extreme_poses(lens, bench, a.poses)
+        for v in a.variants.split(","):
+            r = compare(lens, bench, poses, v, a.spp)
+            out[f"{label}/{v}"] = r
+            worst = [max(np.abs(row["dz_sigma"])) for row in r["rows"]]
+            z4 = [row["dz_nm"][r["modes"].index(4)] for row in r["rows"]]
+            print(f"{label:10s} {v:8s} max |dz|/sigma per pose: " + " ".join(f"{w:6.1f}" for w in worst)
+                  + " | Z4 (nm): " + " ".join(f"{z:6.2f}" for z in z4)
+                  + f" | {np.mean([row['seconds'] for row in r['rows']]):.1f} s/pose", flush=True)
+            if a.json:
+                with open(a.json, "w") as fh:
+                    json.dump(out, fh)
+
+
+if __name__ == "__main__":
+    main()
