@@ -3,6 +3,7 @@
 Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design DESIGN.json]
      [--lenses polynomial,extended_polynomial] [--poses 4] [--variants base,cut5,round,noxtalk]
      [--spp 4] [--json OUT.json]
+     ... --design DESIGN.json --sessions 6 --spp 2 [--calibration-tolerances default]: the session study
 
 Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
 extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
@@ -14,6 +15,8 @@ diag R) and in nm, per reference-model variant:
   noxtalk  cross-talk taken out (every 3rd lenslet lit at a time): what remains is pixelisation,
            whole-pixel window placement and truncation
   f41/f67  lenslet focal length 4.1 / 6.7 mm (model and reference alike)
+  beamref  the user reference recorded with the bench's laser and no lens (WFS_SetSpotsToUserReference)
+  widebeam a 1 m beam (no Gaussian irradiance gradient; the lens's own flux gradient stays), model alike
 Also the cost of one physical pose and of the fast model's S(p).
 """
 
@@ -37,6 +40,8 @@ VARIANTS = {
     "noxtalk": ({}, {"lit_stride": 3}),
     "f41": ({"lenslet_focal_mm": 4.1}, {}),
     "f67": ({"lenslet_focal_mm": 6.7}, {}),
+    "beamref": ({}, {"reference": "beam"}),
+    "widebeam": ({"laser": {"beam_diameter_mm": 1000.0}}, {}),
 }
 
 
@@ -50,7 +55,9 @@ def extreme_poses(lens, bench, k: int) -> np.ndarray:
 
 def compare(lens, bench, poses, variant: str, spp: int) -> dict:
     sensor_changes, phys_changes = VARIANTS[variant]
-    b = bench.replace(sensor=sensor_changes) if sensor_changes else bench
+    changes = dict(sensor_changes)
+    laser = changes.pop("laser", None)
+    b = bench.replace(**({"sensor": changes} if changes else {}), **({"laser": laser} if laser else {}))
     model = ForwardModel(b, lens)
     cfg = PhysicalSensor(samples_per_pixel=spp, **phys_changes)
     sig = np.sqrt(np.diag(model.noise_cov))
@@ -76,7 +83,16 @@ def main(argv=None):
     ap.add_argument("--variants", default="base,cut5,round,noxtalk")
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--sessions", type=int, default=0, help="run the session study (N sessions per sensor) instead")
+    ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
     a = ap.parse_args(argv)
+    if a.sessions:
+        ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
+        out = sessions(a.design, a.sessions, a.spp, calibration_tolerances=ct)
+        if a.json:
+            with open(a.json, "w") as fh:
+                json.dump(out, fh)
+        return
     lenses = ([("design", a.design)] if a.design else []) + [(n, n) for n in a.lenses.split(",") if n]
     out = {}
     for label, spec in lenses:
@@ -93,6 +109,30 @@ def main(argv=None):
             if a.json:
                 with open(a.json, "w") as fh:
                     json.dump(out, fh)
+
+
+def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical"), seed: int = 0,
+             tolerances=None, calibration_tolerances=None) -> dict:
+    """Session study: n_sessions 12-pose sessions per sensor (same seeds, same plan), calibrated
+    (joint; calibration_tolerances None = the lens known), scored on Z (session_sim.check_sessions)."""
+    from lensforge.verification.session_sim import check_sessions
+
+    out = {}
+    for s in sensors:
+        sensor = PhysicalSensor(samples_per_pixel=spp) if s == "physical" else "model"
+        t0 = time.perf_counter()
+        r = check_sessions(design, n_sessions, seed=seed, tolerances=tolerances, sensor=sensor,
+                           calibration_tolerances=calibration_tolerances,
+                           progress=lambda k, n: print(f"  {s}: session {k}/{n}", flush=True))
+        r = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+        r["seconds"] = time.perf_counter() - t0
+        out[s] = r
+        nees = np.array(r["nees"])
+        print(f"{s:9s} NEES median {np.median(nees):8.1f} mean/6 {np.mean(nees) / 6:7.2f} | chi2/dof "
+              f"{np.min(r['chi2_dof']):.2f}-{np.max(r['chi2_dof']):.2f} | p<0.05 {np.mean(np.array(r['p_values']) < 0.05):.2f}"
+              f" | Z err {np.median(r['z_translation_error_mm']) * 1e3:.1f} um, {np.median(r['z_rotation_error_deg']) * 17.453:.2f} mrad"
+              f" | inside 3 sigma {r['inside_3sigma']:.2f} | failed {len(r['failed'])}", flush=True)
+    return out
 
 
 if __name__ == "__main__":

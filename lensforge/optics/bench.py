@@ -22,7 +22,7 @@ from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
 from ..input_checks import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
 
-__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench",
+__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "CROSSTALK_MODELS", "load_bench", "save_bench",
            "write_atomic"]
 
 
@@ -82,6 +82,11 @@ class Sensor:
     the centroid is taken (ASSUMPTION 27 px = one 150 um pitch; 0 = complete-spot
     centroid); centroid_threshold: noise cut as a fraction of the spot peak
     subtracted before the centroid (ASSUMPTION 0, see ``centroid.py``).
+    crosstalk: 'none' (each lenslet alone, its window centred on its spot) or 'neighbours'
+    (``centroid.crosstalk_slopes``: the 5 x 5 neighbours' coherent spots in each whole-pixel
+    window, against the factory reference; issue 21); camera_offset_px: the camera pixel
+    grid's offset from the lenslet array along x and y (ASSUMPTION 1/3 px: not known; 0
+    puts the central row's and column's reference spots on pixel corners, a placement tie).
     """
 
     pitch_mm: float = 0.150
@@ -96,6 +101,8 @@ class Sensor:
     subaperture_quadrature: int = 2
     centroid_window_px: int = 27
     centroid_threshold: float = 0.0
+    crosstalk: str = "none"
+    camera_offset_px: float = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -185,6 +192,7 @@ _POSITIVE = {
     "sensor.pixel_mm", "sensor.subaperture_quadrature",
 }
 SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
+CROSSTALK_MODELS = ("none", "neighbours")
 _NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
            "sensor.centroid_threshold"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
@@ -204,6 +212,10 @@ def _validate(obj, prefix: str = "") -> None:
         if f.name == "spot_assignment":
             if v not in SPOT_ASSIGNMENTS:
                 raise ConfigError(f"{name}: must be one of {list(SPOT_ASSIGNMENTS)}, got {v!r}")
+            continue
+        if f.name == "crosstalk":
+            if v not in CROSSTALK_MODELS:
+                raise ConfigError(f"{name}: must be one of {list(CROSSTALK_MODELS)}, got {v!r}")
             continue
         if f.name in _LENGTHS:
             if not isinstance(v, (tuple, list)) or len(v) != _LENGTHS[f.name]:

@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .centroid import centroid_slopes, quadrature_rule, window_gain
+from .centroid import centroid_slopes, crosstalk_slopes, quadrature_rule, window_gain
 from .sensor_range import SensorRange, range_use, summarize_range
 from .trace import AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, lens_kernel, trace_rays
 from .zernike import modes_up_to_order, zernike_gradient
@@ -271,7 +271,12 @@ class ForwardModel:
         return np.where(a["st"] == OK, a["irr"].reshape(P, n_l, q), 0.0) * self.quad_weights
 
     def _centroids(self, sq, wi) -> np.ndarray:
-        return centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
+        s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
+        sensor = self.bench.sensor
+        if sensor.crosstalk == "none":
+            return s
+        return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
+                                self.bench.laser.wavelength_nm)
 
     def _zernike(self, a: dict) -> ZernikeResult:
         sensor = self.bench.sensor
