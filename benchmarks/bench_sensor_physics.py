@@ -4,6 +4,7 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      [--lenses polynomial,extended_polynomial] [--poses 4] [--variants base,cut5,round,noxtalk]
      [--spp 4] [--json OUT.json]
      ... --design DESIGN.json --sessions 6 --spp 2 [--calibration-tolerances default]: the session study
+     ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
 
 Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
 extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
@@ -75,6 +76,37 @@ def compare(lens, bench, poses, variant: str, spp: int) -> dict:
     return {"modes": model.modes.tolist(), "sigma_nm": (sig * 1e3).tolist(), "rows": rows}
 
 
+def validate(path: str, design: str | None) -> dict:
+    """The fast model with cross-talk (sensor.crosstalk = 'neighbours') at the poses of a compare() JSON:
+    per pose max |dz|/sigma of the old model, the new model, against the physical reference."""
+    d = json.load(open(path))
+    out = {}
+    for key, r in d.items():
+        label, variant = key.split("/")
+        if variant in ("noxtalk", "round"):  # a diagnostic / an aperture the fast model does not have
+            continue
+        lens, bench = load_design_lens(design if label == "design" else label)
+        sensor_changes, _ = VARIANTS[variant]
+        changes = dict(sensor_changes)
+        laser = changes.pop("laser", None)
+        b = bench.replace(sensor={**changes, "crosstalk": "neighbours"}, **({"laser": laser} if laser else {}))
+        model = ForwardModel(b, lens)
+        sig = np.sqrt(np.diag(model.noise_cov))
+        poses = np.array([row["pose"] for row in r["rows"]])
+        t0 = time.perf_counter()
+        z_new = model.evaluate(poses, check_range=False).z
+        dt = (time.perf_counter() - t0) / len(poses)
+        rows = []
+        for i, row in enumerate(r["rows"]):
+            zp, zo = np.array(row["z_physical_um"]), np.array(row["z_model_um"])
+            rows.append({"old_sigma": ((zp - zo) / sig).tolist(), "new_sigma": ((zp - z_new[i]) / sig).tolist(),
+                         "z_new_um": z_new[i].tolist()})
+        out[key] = {"modes": r["modes"], "rows": rows, "seconds_per_pose": dt}
+        print(f"{key:28s} max |dz|/sigma old: " + " ".join(f"{max(np.abs(x['old_sigma'])):6.1f}" for x in rows)
+              + " | new: " + " ".join(f"{max(np.abs(x['new_sigma'])):5.1f}" for x in rows), flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--design", default=None)
@@ -85,7 +117,14 @@ def main(argv=None):
     ap.add_argument("--json", default=None)
     ap.add_argument("--sessions", type=int, default=0, help="run the session study (N sessions per sensor) instead")
     ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
+    ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
     a = ap.parse_args(argv)
+    if a.validate:
+        out = validate(a.validate, a.design)
+        if a.json:
+            with open(a.json, "w") as fh:
+                json.dump(out, fh)
+        return
     if a.sessions:
         ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
         out = sessions(a.design, a.sessions, a.spp, calibration_tolerances=ct)

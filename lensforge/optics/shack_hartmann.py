@@ -273,7 +273,7 @@ class ForwardModel:
     def _centroids(self, sq, wi) -> np.ndarray:
         s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
         sensor = self.bench.sensor
-        if sensor.crosstalk == "none":
+        if sensor.crosstalk == "none" or sensor.centroid_window_px == 0:  # window 0: the complete spot
             return s
         return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
                                 self.bench.laser.wavelength_nm)
