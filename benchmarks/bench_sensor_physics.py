@@ -117,6 +117,7 @@ def main(argv=None):
     ap.add_argument("--json", default=None)
     ap.add_argument("--sessions", type=int, default=0, help="run the session study (N sessions per sensor) instead")
     ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
+    ap.add_argument("--sensors", default="model,physical", help="session study: which sensors measure")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
     a = ap.parse_args(argv)
     if a.validate:
@@ -127,7 +128,7 @@ def main(argv=None):
         return
     if a.sessions:
         ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
-        out = sessions(a.design, a.sessions, a.spp, calibration_tolerances=ct)
+        out = sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")), calibration_tolerances=ct)
         if a.json:
             with open(a.json, "w") as fh:
                 json.dump(out, fh)

@@ -79,13 +79,49 @@ def test_settings_are_checked(bench):
         PhysicalSensor(window_px=0).window(bench.sensor)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 21 item 2: the fast model carries no cross-talk yet "
-                   "(measured: Z4 -45 to -53 sigma on the polynomial lens, benchmarks/bench_sensor_physics.py)")
-def test_fast_model_within_one_sigma_of_the_physical_sensor(bench):
-    model = ForwardModel(bench, lf.paper_lens("polynomial"))
+def _max_sigma(model, z_phys, pose):
     sig = np.sqrt(np.diag(model.noise_cov))
-    r = physical_measure(model, np.zeros(6), FAST)
-    assert np.abs((r.z - model.evaluate(np.zeros(6)).z[0]) / sig).max() < 1.0
+    return np.abs((z_phys - model.evaluate(pose).z[0]) / sig).max()
+
+
+def test_crosstalk_model_closes_most_of_the_gap(bench):
+    # sensor.crosstalk = 'neighbours' (optics/centroid.py): on the paper's polynomial lens at nominal the
+    # fast model moves from ~50 sigma off the physical sensor to a few sigma (measured on the default
+    # design with 4 samples per pixel: 59-70 sigma -> 3.2-8.3 sigma at nominal and 4 calibration poses)
+    lens = lf.paper_lens("polynomial")
+    old = ForwardModel(bench, lens)
+    new = ForwardModel(bench.replace(sensor={"crosstalk": "neighbours"}), lens)
+    r = physical_measure(old, np.zeros(6), FAST)
+    before, after = _max_sigma(old, r.z, np.zeros(6)), _max_sigma(new, r.z, np.zeros(6))
+    assert before > 30 and after < 0.2 * before
+
+
+@pytest.mark.xfail(strict=True, reason="issue 21: the cross-talk model leaves 3-8 sigma (default design) and "
+                   "is worse than none with a noise cut; see the issue note")
+def test_fast_model_within_one_sigma_of_the_physical_sensor(bench):
+    lens = lf.paper_lens("polynomial")
+    new = ForwardModel(bench.replace(sensor={"crosstalk": "neighbours"}), lens)
+    r = physical_measure(ForwardModel(bench, lens), np.zeros(6), FAST)
+    assert _max_sigma(new, r.z, np.zeros(6)) < 1.0
+
+
+def test_crosstalk_model_jacobian_is_exact():
+    # the complex step through the cross-talk kernel against central differences of the model (a small
+    # pupil keeps it cheap; steps small enough that no window moves by a pixel between them)
+    b = lf.Bench.default().replace(sensor={"crosstalk": "neighbours", "pupil_radius_mm": 0.5, "zernike_order": 3})
+    model = ForwardModel(b, lf.paper_lens("polynomial"))
+    x0 = np.array([0.1, -0.2, 0.3, 0.01, -0.02, 0.015])
+    J, _, _ = model.jacobians(x0[None])
+    h = np.array([1e-5] * 3 + [1e-6] * 3)
+    fd = np.stack([(model.evaluate(x0 + e * hi).z[0] - model.evaluate(x0 - e * hi).z[0]) / (2 * hi)
+                   for e, hi in zip(np.eye(6), h)], axis=1)
+    scale = np.abs(fd).max(axis=0)
+    np.testing.assert_array_less(np.abs(J[0] - fd).max(axis=0), 1e-5 * scale + 1e-9)
+
+
+def test_crosstalk_setting_is_checked(bench):
+    with pytest.raises(ConfigError, match="sensor.crosstalk"):
+        bench.replace(sensor={"crosstalk": "all"})
 
 
 def test_simulate_session_rejects_an_unknown_sensor():

@@ -175,8 +175,9 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
             return {"seed": int(seed), "failed": f"seed {seed}: {e}"}
     e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
     std = frame_dict(r.Z, r.handeye.cov_Z)["std"]
-    sig = np.array([std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
-                   [math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
+    # an unobservable direction has no std (None): nan, so that it never counts as inside
+    sig = np.array([np.nan if std[k_] is None else std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
+                   [np.nan if std[k_] is None else math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
     err_parent = np.concatenate([r.Z[:3, 3] - s.Z[:3, 3], rotvecs(r.Z[:3, :3] @ s.Z[:3, :3].T)])
     return {"seed": int(seed), "failed": None, "nees": float(e @ np.linalg.solve(r.handeye.cov_Z, e)),
             "inside_3sigma_each_axis": bool(np.all(np.abs(err_parent) <= 3 * sig)), "chi2_dof": float(r.chi2_dof),
