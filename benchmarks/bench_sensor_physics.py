@@ -17,7 +17,7 @@ diag R) and in nm, per reference-model variant:
            whole-pixel window placement and truncation
   f41/f67  lenslet focal length 4.1 / 6.7 mm (model and reference alike)
   beamref  the user reference recorded with the bench's laser and no lens (WFS_SetSpotsToUserReference)
-  widebeam a 1 m beam (no Gaussian irradiance gradient; the lens's own flux gradient stays), model alike
+  widebeam a 100 mm beam (no Gaussian irradiance gradient; the lens's own flux gradient stays), model alike
 Also the cost of one physical pose and of the fast model's S(p).
 """
 
@@ -42,7 +42,7 @@ VARIANTS = {
     "f41": ({"lenslet_focal_mm": 4.1}, {}),
     "f67": ({"lenslet_focal_mm": 6.7}, {}),
     "beamref": ({}, {"reference": "beam"}),
-    "widebeam": ({"laser": {"beam_diameter_mm": 1000.0}}, {}),
+    "widebeam": ({"laser": {"beam_diameter_mm": 100.0}}, {}),
 }
 
 
