@@ -5,6 +5,7 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      [--spp 4] [--json OUT.json]
      ... --design DESIGN.json --sessions 6 --spp 2 [--calibration-tolerances default]: the session study
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
+     ... --cost: S(p) with and without the cross-talk model, one physical pose
 
 Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
 extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
@@ -107,6 +108,30 @@ def validate(path: str, design: str | None) -> dict:
     return out
 
 
+def cost(lens_name: str = "zernike", repeat: int = 3) -> dict:
+    """Wall time of one S(p) (sensitivity_from_model at nominal) and of one physical pose, per sensor model."""
+    from lensforge.optics.sensitivity import sensitivity_from_model
+
+    out = {}
+    for xt in ("none", "neighbours"):
+        model = ForwardModel(lf.Bench.default().replace(sensor={"crosstalk": xt}), lf.paper_lens(lens_name))
+        sensitivity_from_model(model)  # warm (compiles, caches)
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            sensitivity_from_model(model)
+            best = min(best, time.perf_counter() - t0)
+        out[xt] = best
+        print(f"S(p), {lens_name} lens, crosstalk={xt}: {best * 1e3:.1f} ms", flush=True)
+    model = ForwardModel(lf.Bench.default(), lf.paper_lens(lens_name))
+    for spp in (2, 4):
+        t0 = time.perf_counter()
+        physical_measure(model, np.zeros(6), PhysicalSensor(samples_per_pixel=spp))
+        out[f"physical_spp{spp}"] = time.perf_counter() - t0
+        print(f"physical sensor, one pose, {spp} samples/pixel: {out[f'physical_spp{spp}']:.1f} s", flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--design", default=None)
@@ -119,7 +144,11 @@ def main(argv=None):
     ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
     ap.add_argument("--sensors", default="model,physical", help="session study: which sensors measure")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
+    ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     a = ap.parse_args(argv)
+    if a.cost:
+        cost()
+        return
     if a.validate:
         out = validate(a.validate, a.design)
         if a.json:
