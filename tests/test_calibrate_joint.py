@@ -12,7 +12,8 @@ import pytest
 
 from conftest import run_cli_inprocess
 
-from lensforge.calibration.session import CALIBRATION_METHODS, calibrate
+from lensforge.calibration.pipeline import METHODS as CALIBRATION_METHODS
+from lensforge.calibration.session import calibrate
 from lensforge.calibration.formats import write_bundle
 from lensforge.optics.pose import invert_poses, matrix_to_pose
 from lensforge.verification.session_sim import NEES_3SIGMA_6DOF, check_sessions, simulate_session
@@ -128,14 +129,14 @@ def test_no_tolerance_model_falls_back_to_two_stage(session, monkeypatch, capsys
 
 def test_joint_failure_falls_back_to_two_stage(session, monkeypatch):
     """A joint fit that cannot run (CalibrationError) gives the two-stage result, stated."""
-    import lensforge.calibration.session as session_mod
+    import lensforge.calibration.pipeline as pipeline_mod
     from lensforge.errors import CalibrationError
 
     def fail(*a, **k):
         raise CalibrationError("joint calibration: only 2 of 12 poses light the pupil at the start")
 
     _, paths = session
-    monkeypatch.setattr(session_mod, "joint_session", fail)
+    monkeypatch.setattr(pipeline_mod, "joint_session", fail)
     r = calibrate(LENS, paths["wfs_zernike.csv"], paths["robot_poses.csv"])
     assert r.method == "two-stage" and "only 2 of 12" in r.extra["fallback"]["reason"]
     assert r.to_json()["method"] == "two-stage" and "fell back" in r.warnings[0]

@@ -52,7 +52,8 @@ from ..optics.materials import Material
 from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials
 from ..optics.zernike import zernike_monomials
 
-__all__ = ["Tolerances", "load_tolerances", "save_tolerances", "sample_as_built", "scale_canonical",
+__all__ = ["Tolerances", "load_tolerances", "save_tolerances", "resolve_tolerances", "no_tolerance_model",
+           "sample_as_built", "scale_canonical",
            "COMPONENTS", "COMPONENT_SPECS", "ToleranceComponent", "ToleranceField", "AsBuiltState",
            "TOLERANCE_RANGES", "DEFAULT_TOLERANCES_FILE"]
 
@@ -493,6 +494,27 @@ def load_tolerances(path: str | PathLike[str]) -> Tolerances:
     """Tolerances from a TOML file (missing keys keep the documented defaults)."""
     p = Path(path)
     return Tolerances.from_dict(read_toml(p, "tolerances file"), where=f"tolerances file {p.name}")
+
+
+
+def no_tolerance_model(spec) -> bool:
+    """True for None or "none" (any case): the lens as designed, no as-built model."""
+    return spec is None or (isinstance(spec, str) and spec.strip().lower() == "none")
+
+
+def resolve_tolerances(spec) -> tuple[Tolerances | None, str]:
+    """(Tolerances or None, label) of what a user or a caller may name a tolerance model:
+    a Tolerances, "default" (the package's file), a TOML path, or None / "none" (the lens
+    exactly as designed: None, label "none"). The label is what results record."""
+    if no_tolerance_model(spec):
+        return None, "none"
+    if isinstance(spec, Tolerances):
+        return spec, "given Tolerances"
+    if isinstance(spec, str) and spec == "default":
+        return load_tolerances(DEFAULT_TOLERANCES_FILE), str(DEFAULT_TOLERANCES_FILE)
+    if isinstance(spec, (str, PathLike)):
+        return load_tolerances(spec), str(Path(spec))
+    raise ConfigError(f"tolerances: expected a Tolerances, 'default', 'none' or a TOML path, got {type(spec).__name__}")
 
 
 def save_tolerances(tol: Tolerances, path) -> Path:

@@ -44,7 +44,7 @@ from scipy.optimize import least_squares
 from ..errors import CalibrationError
 from .formats import rotation_defects
 from ..optics.pose import (DOF_NAMES, adjoint, invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right,
-                           right_jacobian_so3, rotations, skew)
+                           right_jacobian_inv_so3, right_jacobian_so3, rotations, skew)
 from ..optics.sensitivity import observability
 
 __all__ = [
@@ -483,17 +483,6 @@ def _cost(A, B, X, Z, Wh):
     return float(np.sum(r * r))
 
 
-def _jr_inv_batch(r: np.ndarray, left: bool = False) -> np.ndarray:
-    """Inverse right (or left) Jacobians of SO(3) for rotation vectors r (n, 3)."""
-    th = np.linalg.norm(r, axis=1)
-    K = skew(-r if left else r)
-    small = th < 1e-4
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
-                 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
-    return np.eye(3) + 0.5 * K + c[:, None, None] * (K @ K)
-
-
 def _param_jac(xi: np.ndarray) -> np.ndarray:
     """J_P(xi): P(xi + d) = P(xi) P(J_P(xi) d) to first order (6x6)."""
     M = np.zeros((6, 6))
@@ -520,12 +509,12 @@ def _refine(A, B, X0, Z0, Wh, max_nfev):
         e = matrix_to_pose(E)
         Jx = np.zeros((n, 6, 6))
         Jx[:, :3, :3] = E[:, :3, :3]
-        Jx[:, 3:, 3:] = _jr_inv_batch(e[:, 3:])
+        Jx[:, 3:, 3:] = right_jacobian_inv_so3(e[:, 3:])
         Jx = Jx @ _param_jac(p[:6])
         L = np.zeros((n, 6, 6))
         L[:, :3, :3] = np.eye(3)
         L[:, :3, 3:] = -skew(e[:, :3])
-        L[:, 3:, 3:] = _jr_inv_batch(e[:, 3:], left=True)
+        L[:, 3:, 3:] = right_jacobian_inv_so3(e[:, 3:], left=True)
         Jz = -(L @ AdBinv) @ _param_jac(p[6:])
         J = np.concatenate([Jx, Jz], axis=2)
         return (Wh @ J).reshape(-1, 12)

@@ -11,59 +11,43 @@ design's model (with a lateral margin) and whose flange pose the robot reaches
 (inverse kinematics within the joint limits); the flange poses follow from the
 robot's cell (nominal Z and X, robot TOML [cell]).
 
-``calibrate``: ``method="two-stage"``: (1) each measured Zernike vector gives a lens
-pose with its covariance (``pose_estimation``, Levenberg-Marquardt from the pose the
-cell predicts for the recorded flange pose, then from nominal); (2) A X = Z B by
-maximum likelihood (``handeye.solve_handeye``) with the robot's repeatability and
-each pose's covariance. Poses are matched by id; ids in one file only, unlit poses
-and poses whose estimate fails are reported and left out. Outliers, two robust
-tests (Bonferroni 1 - alpha/n quantile of the chi2 law, scaled up by the median
-chi2 over its expectation so that an overall misfit does not reject every pose):
-first on each lens-pose fit (m - 6 DOF: a wrong local minimum or a corrupted frame),
-then on each pose's hand-eye residual (6 DOF), after which the solve is repeated once. Model check: chi2 of the final solve against its degrees
-of freedom (p-value); a small p-value warns that the lens as built or the noise
-model differs from what the design says. ``method="joint"`` (the default,
-``session_joint``) estimates the as-built lens with X and Z.
+``calibrate``: reads the WFS export and the recorded flange poses, matches them by pose
+id (ids in one file only are reported and left out; ``match_session``) into a
+``SessionData`` and runs the one calibration pipeline (``pipeline.run``: ``joint``, the
+default, or ``two-stage``), the same code every simulation of ``verification`` runs.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
-from ..errors import CalibrationError, ConfigError, LensforgeError, PoseRangeError
+from ..asbuilt.lens_params import parameterise
+from ..asbuilt.tolerances import no_tolerance_model, resolve_tolerances
+from ..errors import CalibrationError, ConfigError, PoseRangeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens, LensSpec, resolve_lens
-from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
 from . import formats
-from .handeye import solve_handeye
 from .joint_design import candidate_information, design_joint_poses
-from ..asbuilt.lens_params import parameterise
+from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
-from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
-from .session_joint import joint_session, resolve_tolerances
-from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict, std_dict
+from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, std_dict
 
 if TYPE_CHECKING:
     from ..asbuilt.tolerances import Tolerances
 
-__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
-           "two_stage", "calibrate", "estimate", "load_design_lens",
-           "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
-
-CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha, progress) -> CalibrationResult
+__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "match_session", "calibrate", "estimate",
+           "load_design_lens", "bench_for_measurements", "zernike_for_model"]
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -263,23 +247,6 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
 # ----------------------------------------------------------------------------- estimate
 
 
-def _estimate_one(model: ForwardModel, z: np.ndarray, starts) -> tuple[PoseEstimate | None, str]:
-    """LM estimate from the first start that converges; (None, reason) otherwise."""
-    reason = ""
-    for x0 in starts:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UnobservableWarning)
-                est = estimate_pose_model(model, z, x0=np.clip(x0, -4.0, 4.0) if x0 is not None else None)
-        except LensforgeError as e:
-            reason = str(e)
-            continue
-        if est.converged:
-            return est, ""
-        reason = est.message
-    return None, reason or "the estimate did not converge"
-
-
 def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
     """One lens pose with its covariance from one WFS measurement.
 
@@ -299,21 +266,11 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
     b = bench_for_measurements(bench, wfs)
     model = ForwardModel(b, lens)
     z = zernike_for_model(wfs.zernike[k], model)[0]
-    est, reason = _estimate_one(model, z, [None])
+    est, reason = estimate_one(model, z, [None])
     if est is None:
         raise CalibrationError(f"{wfs.source}: row {wfs.rows[k]}: no lens pose found ({reason})")
     return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
 
-
-
-def _threshold(n: int, scale: float, alpha: float = OUTLIER_ALPHA) -> float:
-    return float(chi2_dist.ppf(1.0 - alpha / max(n, 1), 6) * scale)
-
-
-def _solve(A, B, C, noise):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return solve_handeye(A, B, method="ml", sigma=noise, cov_B=C, on_degenerate="warn")
 
 
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
@@ -355,134 +312,14 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
     WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
     name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
-    CALIBRATION_METHODS name ("joint", the default: the as-built lens estimated with
+    ``pipeline.METHODS`` name ("joint", the default: the as-built lens estimated with
     X and Z, ``session_joint``; "two-stage": nominal lens); tolerances: the tolerance
     model of the joint method's lens prior ("default": the package's file, or a TOML
     path; two-stage ignores it); progress: optional callable (done, total) called after each
     lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
     than 3 usable poses.
     """
-    if method not in CALIBRATION_METHODS:
-        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
+    if method not in METHODS:
+        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
     data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
-    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
-
-
-def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
-              tolerances=None) -> CalibrationResult:
-    """Two-stage calibration of a matched session: lens poses one by one, then A X = Z B
-    by maximum likelihood, robust outlier test and chi2 model check (module docstring).
-    tolerances: unused (the nominal lens is assumed)."""
-    model, scene, robot = data.model, data.scene, data.robot
-    rejected = list(data.rejected)
-    common, A_all, z_all = data.ids, data.A, data.z
-    # initial guesses: the lens pose the nominal cell predicts for each recorded flange pose
-    T_nom_inv = invert_poses(scene.T_SO_nominal)
-    x_cell = matrix_to_pose(T_nom_inv @ invert_poses(scene.Z) @ A_all @ scene.X)
-    ids, A, B, C, est_chi2 = [], [], [], [], []
-    # all poses at once (batched LM from the cell's prediction); a pose that fails is retried alone from nominal
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UnobservableWarning)
-        batch = estimate_poses_batch(model, z_all, np.clip(x_cell, -4.0, 4.0))
-    dof = len(model.modes) - 6
-    for k, i in enumerate(common):
-        if batch.converged[k] and np.all(np.isfinite(batch.cov[k])):
-            pose, cov, chi2_dof = batch.poses[k], batch.cov[k], float(batch.chi2[k]) / dof
-        else:
-            est, reason = _estimate_one(model, z_all[k], [None])
-            if est is None:
-                rejected.append({"pose": i, "reason": f"lens pose not found (unlit or out of range): {reason}"})
-                continue
-            pose, cov, chi2_dof = est.pose, est.cov, est.chi2_dof
-        ids.append(i)
-        A.append(A_all[k])
-        B.append(scene.T_SO_nominal @ pose_to_matrix(pose))
-        C.append(pose_vector_cov_to_right(pose, cov))
-        est_chi2.append(chi2_dof)
-        if progress is not None:
-            progress(k + 1, len(common))
-    if len(ids) < 3:
-        raise CalibrationError(f"calibrate: only {len(ids)} poses gave a lens pose (need >= 3); "
-                               + "; ".join(f"{r['pose']}: {r['reason']}" for r in rejected[:3]))
-    # robust test on the lens-pose fits: a wrong local minimum or a corrupted frame fits far worse than the rest
-    fit = np.array(est_chi2) * dof
-    fit_thr = float(chi2_dist.ppf(1.0 - outlier_alpha / len(ids), dof)
-                    * max(1.0, float(np.median(fit)) / chi2_dist.median(dof)))
-    bad_fit = fit > fit_thr
-    if bad_fit.any() and (~bad_fit).sum() >= 3:
-        for k in np.flatnonzero(bad_fit):
-            rejected.append({"pose": ids[k], "reason": f"outlier: lens-pose fit chi2/dof {est_chi2[k]:.3g} above the "
-                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {fit_thr / dof:.3g}"})
-        keep_fit = np.flatnonzero(~bad_fit)
-        ids = [ids[k] for k in keep_fit]
-        A, B, C, est_chi2 = ([v[k] for k in keep_fit] for v in (A, B, C, est_chi2))
-    A, B, C = np.array(A), np.array(B), np.array(C)
-    noise = robot.noise
-    he = _solve(A, B, C, noise)
-    # robust outlier test on the per-pose residual chi2 (scaled by the median / its expectation)
-    scale = max(1.0, float(np.median(he.residual_chi2)) / chi2_dist.median(6))
-    thr = _threshold(len(ids), scale, outlier_alpha)
-    first_chi2 = he.residual_chi2.copy()
-    out = first_chi2 > thr
-    keep = ~out
-    if out.any() and keep.sum() >= 3:
-        he = _solve(A[keep], B[keep], C[keep], noise)
-    else:
-        keep = np.ones(len(ids), bool)
-    chi2_final = dict(zip(np.array(ids)[keep].tolist(), he.residual_chi2.tolist()))
-    per_pose = []
-    for k, i in enumerate(ids):
-        per_pose.append({"pose": i, "handeye_chi2": chi2_final.get(i, float(first_chi2[k])), "estimate_chi2_dof": float(est_chi2[k]),
-                         "outlier": bool(out[k])})
-        if not keep[k]:
-            rejected.append({"pose": i, "reason": f"outlier: hand-eye residual chi2 {first_chi2[k]:.3g} above the "
-                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {thr:.3g}"})
-    used = tuple(np.array(ids)[keep].tolist())
-    p = float(chi2_dist.sf(he.chi2, he.dof)) if he.dof > 0 else float("nan")
-    warns = list(he.warnings)
-    if he.dof > 0 and p < 1e-3:
-        warns.append(f"model check failed: chi2/dof = {he.chi2_dof:.3g} (p = {p:.2g}): the residuals exceed the "
-                     "noise model; the lens as built may differ from its design (a joint as-built calibration "
-                     "estimates it) or the robot/sensor noise is larger than assumed; the reported 1-sigma are "
-                     "then too small")
-    m_fit = float(np.median(est_chi2))
-    fit_dof = len(model.modes) - 6
-    if fit_dof > 0 and m_fit > chi2_dist.ppf(0.999, fit_dof) / fit_dof:
-        warns.append(f"lens-pose fits: median chi2/dof = {m_fit:.3g} over {fit_dof} DOF: the measured wavefronts do "
-                     "not match the design's model (lens as built, bench pupil/wavelength, or sensor noise)")
-    return CalibrationResult(X=he.X, Z=he.Z, handeye=he, poses_used=used, poses_rejected=tuple(rejected),
-                             per_pose=tuple(per_pose), chi2=float(he.chi2), dof=int(he.dof),
-                             chi2_dof=float(he.chi2_dof), p_value=p, method="two-stage", robot=robot.name,
-                             warnings=tuple(warns), outlier_threshold=thr)
-
-
-def no_tolerance_model(tolerances) -> bool:
-    """True for tolerances None or "none" (any case): no as-built lens prior."""
-    return tolerances is None or (isinstance(tolerances, str) and tolerances.strip().lower() == "none")
-
-
-def _fallback(data: SessionData, reason: str, **kw) -> CalibrationResult:
-    r = two_stage(data, **kw)
-    w = (f"the joint as-built calibration could not run ({reason}); fell back to the two-stage pipeline, "
-         "which assumes the lens as designed",)
-    return replace(r, warnings=w + tuple(r.warnings),
-                               extra={**r.extra, "fallback": {"from": "joint", "reason": reason}})
-
-
-def joint(data: SessionData, *, tolerances="default", **kw) -> CalibrationResult:
-    """Joint as-built calibration of a matched session (``session_joint.joint_session``)
-    started from the two-stage solution and from the cell's nominal X, Z. Falls back to
-    ``two_stage`` (method "two-stage", a warning, and ``extra["fallback"]`` = {"from":
-    "joint", "reason"}) when it cannot run: no tolerance model (tolerances None or
-    "none") or the joint fit fails (CalibrationError, e.g. no start lights 3 poses).
-    A tolerance file that cannot be read stays an error (the user's mistake)."""
-    if no_tolerance_model(tolerances):
-        return _fallback(data, "no tolerance model for the as-built lens prior (tolerances: none)", **kw)
-    try:
-        return joint_session(data, start=two_stage, tolerances=tolerances, **kw)
-    except CalibrationError as e:
-        return _fallback(data, f"the joint fit failed: {e}", **kw)
-
-
-CALIBRATION_METHODS["joint"] = joint
-CALIBRATION_METHODS["two-stage"] = two_stage
+    return run(data, method, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)

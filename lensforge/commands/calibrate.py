@@ -22,7 +22,7 @@ def calibrate_cmd(
                                      help="flange poses: CSV pose,X,Y,Z,A,B,C (mm/deg), CSV pose,x,y,z,qw,qx,qy,qz "
                                           "with '# units: m|mm', or JSON 4x4"),
     robot: Optional[str] = typer.Option(None, "--robot", help=ROBOT_HELP),
-    method: str = typer.Option("joint", "--method", help="calibration method (calibration.session.CALIBRATION_METHODS): "
+    method: str = typer.Option("joint", "--method", help="calibration method (calibration.pipeline.METHODS): "
                                                          "joint (default; estimates the as-built lens with X and Z) "
                                                          "or two-stage"),
     tolerances: str = typer.Option("default", "-t", "--tolerances",

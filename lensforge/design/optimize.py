@@ -34,6 +34,7 @@ from ..errors import ConfigError, DesignError, LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
+from ..progress import Bar, progress_bar
 from .constraints import Constraints, check_design, require_feasible, working_poses
 from .criteria import check_criterion, criterion_value
 from .design_file import Design, metrics_dict
@@ -65,37 +66,6 @@ def _global_numpy_seed(seed: int):
         np.random.set_state(state)
 
 
-class _Progress:
-    """Rich progress bar on stderr (or nothing)."""
-
-    def __init__(self, enabled: bool, total: int, label: str):
-        self.enabled = enabled
-        self.total = total
-        self.label = label
-        self._p = None
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._p = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
-            self._p.__enter__()
-            self._task = self._p.add_task(self.label, total=self.total)
-        return self
-
-    def update(self, n: int, best: float):
-        if self._p is not None:
-            txt = f"{self.label}  best {best:.5g}" if best < INFEASIBLE else f"{self.label}  (no feasible yet)"
-            self._p.update(self._task, completed=min(n, self.total), description=txt)
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.__exit__(*exc)
-        return False
-
-
 class DesignProblem:
     """Cost function of one design run: u (unit box) -> criterion or penalty.
 
@@ -105,7 +75,7 @@ class DesignProblem:
 
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
-                 progress: _Progress | None = None, robust: RobustSpec | None = None):
+                 progress: Bar | None = None, robust: RobustSpec | None = None, label: str = ""):
         self.bench = bench
         self.robust = robust
         self.par = par
@@ -115,6 +85,7 @@ class DesignProblem:
         self.constraints.check_bench(bench)
         self.poses = working_poses(self.constraints)
         self.max_evals = int(max_evals)
+        self.label = label  # the progress bar's text
         self.time_limit_s = time_limit_s
         self.progress = progress
         self.n_evals = 0
@@ -167,7 +138,9 @@ class DesignProblem:
             if len(self.candidates) > 4 * _N_CANDIDATES:
                 self.candidates = sorted(self.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]
         if self.progress is not None:
-            self.progress.update(self.n_evals, self.best_cost)
+            self.progress.update(min(self.n_evals, self.max_evals))
+            self.progress.describe(f"{self.label}  best {self.best_cost:.5g}" if self.best_cost < INFEASIBLE
+                                   else f"{self.label}  (no feasible yet)")
         return cost
 
     def batch(self, U) -> np.ndarray:
@@ -445,8 +418,8 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     rng = np.random.default_rng(seed)
     label = f"{meth} {par.model} ({crit}{', robust' if robust is not None else ''})"
     t0 = time.perf_counter()
-    with _Progress(progress, evals, label) as prog:
-        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust)
+    with progress_bar(evals, label, enabled=progress) as bar:
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, bar, robust, label)
         u0, start_kind = _start_point(prob, start, rng)
         p_start = par.from_unit(u0)
         start_cost = prob(u0)  # counted, so the start is always a candidate

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = ["pose_to_matrix", "matrix_to_pose", "rotations", "rotvecs", "skew", "invert_poses", "adjoint",
-           "right_jacobian_so3", "pose_vector_cov_to_right", "rotation_angle_deg", "transform_error",
+           "right_jacobian_so3", "right_jacobian_inv_so3", "pose_vector_cov_to_right", "rotation_angle_deg", "transform_error",
            "DOF_NAMES", "DOF_UNITS"]
 
 DOF_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -143,6 +143,19 @@ def right_jacobian_so3(r) -> np.ndarray:
     a = np.where(small, 0.5, (1 - np.cos(ths)) / ths**2)
     b = np.where(small, 1.0 / 6.0, (ths - np.sin(ths)) / ths**3)
     return np.eye(3) - a * K + b * K @ K
+
+
+def right_jacobian_inv_so3(r, left: bool = False) -> np.ndarray:
+    """Inverse right Jacobian J_r(r)^-1 (..., 3, 3) of SO(3) for rotation vectors r (..., 3)
+    (left=True: the inverse left Jacobian, J_l(r)^-1 = J_r(-r)^-1). Below 1e-4 rad the
+    coefficient's series 1/12 + th^2/720 replaces the closed form (which cancels there)."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r, axis=-1)[..., None, None]
+    K = skew(-r if left else r)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
+    return np.eye(3) + 0.5 * K + c * (K @ K)
 
 
 def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:

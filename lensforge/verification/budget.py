@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import ConfigError
-from ..asbuilt.tolerances import COMPONENT_SPECS
+from ..asbuilt.tolerances import COMPONENT_SPECS, resolve_tolerances
 from ..optics.lens import LensSpec, resolve_lens
 from .runner import dask_client
-from .study import StudyConfig, resolve_tolerances, verify
+from .study import StudyConfig, verify
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -95,7 +95,7 @@ def sensitivity_analysis(lens: LensSpec, tolerances: Tolerances | str | Path, n_
     """Rows "none" (noise only), one per component (alone, at its given size), "all"."""
     r = resolve_lens(lens)
     lens, bench = r.lens, r.bench_or(bench)
-    tol = resolve_tolerances(tolerances)
+    tol = resolve_tolerances(tolerances)[0]
     if tol is None:
         raise ConfigError("tolerances: the sensitivity analysis needs a tolerance model")
     config = config or StudyConfig()
@@ -238,7 +238,7 @@ def tolerance_budget(lens: LensSpec, tolerances: Tolerances | str | Path, *, tar
 
     r = resolve_lens(lens)
     lens, bench = r.lens, r.bench_or(bench)
-    tol = resolve_tolerances(tolerances)
+    tol = resolve_tolerances(tolerances)[0]
     if tol is None:
         raise ConfigError("tolerances: the budget needs a tolerance model (--tolerances T.toml)")
     config = replace(config or StudyConfig(), target_mm=float(target_mm), target_deg=float(target_deg))

@@ -191,8 +191,7 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
             status[i] = PUPIL_LOST
             msgs.append(f"trial {i}: true pose does not light the pupil: {res.reason(0)}")
             continue
-        sigma = bench.noise.slope_sigma_urad * 1e-6
-        z = model.pupil.fit(res.slopes[0] + rng.normal(0.0, sigma, res.slopes[0].shape))
+        z = model.add_noise(res, rng)[0]
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UnobservableWarning)
