@@ -30,7 +30,7 @@ import numba as nb
 import numpy as np
 
 from .bench import Bench
-from .jit import compile_notice
+from .jit import compile_notice, kernel_threads
 from .lens import Lens
 from .pose import right_jacobian_so3, rotations, skew
 
@@ -710,7 +710,7 @@ def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel
     out = np.empty((n_p, uv.shape[1], 5))
     deriv = np.empty((n_p, uv.shape[1], m, 4))
     status = np.empty((n_p, uv.shape[1]), dtype=np.int8)
-    with compile_notice():
+    with compile_notice(), kernel_threads():
         _trace_grid(uv, Rs, ts, dT, lt.arrays() if lt is not None else None, *_beam_args(bench, lens), *_kernel_args(kern), out, deriv, status)
     d = np.swapaxes(deriv, -1, -2)  # (P, N, 4, m)
     m0 = 2 + dT.shape[1]
@@ -739,7 +739,7 @@ def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKern
     out = np.empty((n_p, n_t, 5))
     status = np.empty((n_p, n_t), dtype=np.int8)
     counts = np.empty((n_p, n_t), dtype=np.int64)
-    with compile_notice():
+    with compile_notice(), kernel_threads():
         _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), float(tol), int(maxit),
              out, status, counts)
     return out[..., :2], out[..., 2:4], out[..., 4], status, int(counts.sum())
