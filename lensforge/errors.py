@@ -45,3 +45,37 @@ class DesignError(LensforgeError, RuntimeError):
 
 class CalibrationError(LensforgeError, RuntimeError):
     """Hand-eye data is malformed or the motion is degenerate."""
+
+
+class MissingDependencyError(LensforgeError, ImportError):
+    """An optional part of lensforge is used without the extra that installs its libraries
+    (``pip install 'lensforge[export]'`` brings the mesh and CAD stack)."""
+
+
+class ExceptionWrapper:
+    """Stands in for an optional module that failed to import, and raises only when used.
+
+    The pattern is trimesh's (``trimesh.exceptions.ExceptionWrapper``): a module imports its
+    optional dependency once at the top; when it is missing, the name is bound to this
+    object instead, so the rest of the module (and everything that imports it) loads, and
+    the first attribute access or call raises ``error`` with the import failure chained.
+
+    Parameters
+    ----------
+    error : MissingDependencyError
+        The error to raise on use (its message names the missing extra).
+    cause : ImportError
+        The original import failure (kept as ``__cause__``).
+    """
+
+    def __init__(self, error: MissingDependencyError, cause: ImportError) -> None:
+        error.__cause__ = cause
+        object.__setattr__(self, "_error", error)
+
+    def __getattribute__(self, name: str):
+        if name == "__class__":  # isinstance() and repr() keep working
+            return ExceptionWrapper
+        raise object.__getattribute__(self, "_error")
+
+    def __call__(self, *args, **kwargs):
+        raise object.__getattribute__(self, "_error")

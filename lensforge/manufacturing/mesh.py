@@ -20,11 +20,16 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import manifold3d as m3
 import numpy as np
-import trimesh
 
-from ..errors import ConfigError, LensforgeError
+from ..errors import ConfigError, ExceptionWrapper, LensforgeError, MissingDependencyError
+
+MESH_STACK_MISSING = "STL/3MF export needs trimesh and manifold3d: pip install 'lensforge[export]'"
+try:  # the `export` extra: calibrating a robot does not need the mesh stack installed
+    import manifold3d as m3
+    import trimesh
+except ImportError as _exc:
+    m3 = trimesh = ExceptionWrapper(MissingDependencyError(MESH_STACK_MISSING), _exc)
 from ..fileio import write_atomic
 from ..optics.lens import Lens
 from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume

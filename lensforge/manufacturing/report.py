@@ -9,6 +9,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import LensforgeError
 from ..fileio import dumps_json, write_atomic
@@ -18,7 +19,9 @@ from .features import DEFAULT_FLANGE_MM, FeatureSpec, with_flange
 from .mesh import StlExport, build_lens_mesh, check_mesh, orient_mesh, save_3mf, save_stl
 from .printer import FORM2, PrinterProfile, PrintReport, check_layer, printability
 from .slicer import SlicerCheck, slicer_check
-from .step import StepExport, export_step
+
+if TYPE_CHECKING:
+    from .step import StepExport
 
 __all__ = ["ExportReport", "export_lens", "export_steps", "REPORT_SCHEMA_VERSION"]
 
@@ -183,6 +186,8 @@ def export_lens(lens: Lens, out_dir: str | PathLike[str], stem: str, stl: bool =
     "not available" without PrusaSlicer).
     """
     t0 = time.perf_counter()
+    if step:  # the CAD stack is the `export` extra: say so before any work (MissingDependencyError)
+        from .step import export_step
     tick = progress or (lambda _name: None)
     layer = check_layer(layer_mm, profile)
     if not stem or "/" in stem or stem.startswith("."):

@@ -23,30 +23,36 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
-from OCP.BRep import BRep_Tool
-from OCP.BRepAlgoAPI import BRepAlgoAPI_Cut, BRepAlgoAPI_Fuse, BRepAlgoAPI_Splitter
-from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Transform
-from OCP.BRepCheck import BRepCheck_Analyzer
-from OCP.BRepClass3d import BRepClass3d_SolidClassifier
-from OCP.BRepGProp import BRepGProp
-from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox, BRepPrimAPI_MakeCylinder
-from OCP.GeomAPI import GeomAPI_PointsToBSplineSurface
-from OCP.GProp import GProp_GProps
-from OCP.gp import gp_Ax1, gp_Ax2, gp_Dir, gp_Pnt, gp_Trsf
-from OCP.IFSelect import IFSelect_RetDone
-from OCP.Interface import Interface_Static
-from OCP.Message import Message, Message_Gravity
-from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
-from OCP.STEPControl import STEPControl_AsIs, STEPControl_Reader, STEPControl_Writer
-from OCP.TCollection import TCollection_HAsciiString
-from OCP.TColStd import TColStd_Array2OfReal
-from OCP.TopAbs import TopAbs_IN, TopAbs_SHELL, TopAbs_SOLID
-from OCP.TopExp import TopExp_Explorer
-from OCP.TopoDS import TopoDS, TopoDS_Shape
-from OCP.TopTools import TopTools_ListOfShape
 
-from ..errors import ConfigError, LensforgeError
+from ..errors import ConfigError, LensforgeError, MissingDependencyError
+
+CAD_STACK_MISSING = "STEP export needs the CAD stack: pip install 'lensforge[export]'"
+try:  # the `export` extra (cadquery's OCP, with vtk): only STEP export imports this module
+    from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepAlgoAPI import BRepAlgoAPI_Cut, BRepAlgoAPI_Fuse, BRepAlgoAPI_Splitter
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Transform
+    from OCP.BRepCheck import BRepCheck_Analyzer
+    from OCP.BRepClass3d import BRepClass3d_SolidClassifier
+    from OCP.BRepGProp import BRepGProp
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox, BRepPrimAPI_MakeCylinder
+    from OCP.GeomAPI import GeomAPI_PointsToBSplineSurface
+    from OCP.GProp import GProp_GProps
+    from OCP.gp import gp_Ax1, gp_Ax2, gp_Dir, gp_Pnt, gp_Trsf
+    from OCP.IFSelect import IFSelect_RetDone
+    from OCP.Interface import Interface_Static
+    from OCP.Message import Message, Message_Gravity
+    from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Reader, STEPControl_Writer
+    from OCP.TCollection import TCollection_HAsciiString
+    from OCP.TColStd import TColStd_Array2OfReal
+    from OCP.TopAbs import TopAbs_IN, TopAbs_SHELL, TopAbs_SOLID
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS, TopoDS_Shape
+    from OCP.TopTools import TopTools_ListOfShape
+except ImportError as _exc:
+    raise MissingDependencyError(CAD_STACK_MISSING) from _exc
+
 from ..fileio import write_atomic
 from ..optics.lens import Lens
 from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
