@@ -67,3 +67,24 @@ def test_zernike_and_pose_helpers_at_top_level_round_trip():
     np.testing.assert_allclose(lf.matrix_to_pose(lf.pose_to_matrix(x)), x, atol=tol)
     T = lf.pose_to_matrix(x)
     np.testing.assert_allclose(lf.invert_poses(T) @ T, np.eye(4), atol=tol)
+
+
+def test_no_module_re_exports_another_modules_names():
+    """A module's __all__ lists what it defines: a function or class named there lives there
+    (an importer goes to the defining module; only the package's lazy top level gathers names)."""
+    import importlib
+    import pkgutil
+
+    found = []
+    for m in pkgutil.walk_packages(lf.__path__, "lensforge."):
+        if m.name.endswith("__main__"):
+            continue
+        mod = importlib.import_module(m.name)
+        for name in getattr(mod, "__all__", ()):
+            obj = getattr(mod, name, None)
+            if (inspect.isfunction(obj) or inspect.isclass(obj)) and obj.__module__ != mod.__name__:
+                found.append(f"{mod.__name__}.{name} (defined in {obj.__module__})")
+    for mod_name, name in (("lensforge.optics.bench", "write_atomic"), ("lensforge.calibration.session", "SCHEMA_VERSION")):
+        if name in importlib.import_module(mod_name).__all__:
+            found.append(f"{mod_name}.{name}")
+    assert not found, found

@@ -54,14 +54,14 @@ from .pose_design import candidate_poses
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 from .session_joint import joint_session, resolve_tolerances
-from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict, std_dict
+from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, std_dict
 
 if TYPE_CHECKING:
     from ..asbuilt.tolerances import Tolerances
 
-__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
+__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "match_session",
            "two_stage", "calibrate", "estimate", "load_design_lens",
-           "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
+           "bench_for_measurements", "zernike_for_model", "CALIBRATION_METHODS"]
 
 CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha, progress) -> CalibrationResult
 

@@ -26,7 +26,7 @@ def simulate_session_cmd(
 
     Writes robot_poses.csv, wfs_zernike.csv and truth.json."""
     from ..calibration.formats import write_bundle
-    from ..calibration.session import frame_dict
+    from ..calibration.session_result import frame_dict
 
     from ..verification.session_sim import simulate_session
 

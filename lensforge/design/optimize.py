@@ -40,8 +40,7 @@ from .design_file import Design, metrics_dict
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
 
-__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
-           "RobustSpec"]
+__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400

@@ -39,7 +39,7 @@ from ..optics.lens import Lens, lens_conventions
 from ..optics.surfaces import (Conic, ExtendedPolynomial, Freeform, Surface, ZernikeSag,
                                extended_monomial_exponents)
 
-__all__ = ["lens_conventions", "optiland_model", "write_optiland", "opticstudio_prescription",
+__all__ = ["optiland_model", "write_optiland", "opticstudio_prescription",
            "format_prescription", "write_prescription", "OPTILAND_NEWTON_TOL_MM"]
 
 OPTILAND_NEWTON_TOL_MM = 1e-12  # optiland's Newton-Raphson intersection tolerance in the written file

@@ -22,8 +22,7 @@ from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
 from ..input_checks import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
 
-__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench",
-           "write_atomic"]
+__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench"]
 
 
 @dataclass(frozen=True)

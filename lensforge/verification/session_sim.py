@@ -31,7 +31,8 @@ from ..calibration import formats
 from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.robot import RobotModel
 from ..calibration.formats import write_bundle
-from ..calibration.session import SCHEMA_VERSION, Plan, calibrate, frame_dict, load_design_lens, plan
+from ..calibration.session import Plan, calibrate, load_design_lens, plan
+from ..calibration.session_result import SCHEMA_VERSION, frame_dict
 from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json
 from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
