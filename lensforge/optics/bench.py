@@ -128,7 +128,7 @@ class Bench:
     """Everything the forward model needs besides the lens.
 
     fd_steps: steps per DOF (mm, mm, mm, rad, rad, rad) of the central differences
-    that check the exact S (``sensitivity.difference_jacobian``);
+    that check the exact S in the tests (tests/test_observability.py);
     pose_scales: expected pose uncertainty per DOF used to scale S for metrics
     (1 mm and 1 deg by default, DESIGN.md); rank_rtol: singular values below
     rank_rtol * sigma_max of the scaled, whitened S count as lost rank.

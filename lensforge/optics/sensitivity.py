@@ -34,7 +34,7 @@ from .lens import Lens
 from .pose import DOF_NAMES
 from .shack_hartmann import ForwardModel, ZernikeResult
 
-__all__ = ["jacobian", "JACOBIAN_EVALS", "difference_jacobian", "observability", "Observability", "sensitivity", "sensitivity_from_model", "Metrics",
+__all__ = ["jacobian", "JACOBIAN_EVALS", "observability", "Observability", "sensitivity", "sensitivity_from_model", "Metrics",
            "metrics", "metrics_from_S", "paper_cost", "RANK_PENALTY"]
 
 RANK_PENALTY = 1e6  # added to J per lost rank
@@ -55,28 +55,12 @@ def jacobian(model: ForwardModel, x: ArrayLike, *, uv: ArrayLike | None = None,
     uv: (P, ...) aimed rays at x (warm start; default: aimed here). Units: um per mm
     (tx, ty, tz), um per rad (rx, ry, rz). Returns (J, complete, result): complete (P,)
     the pose is measurable (lit, traced, in the sensor's range); result: the
-    ZernikeResult at x. Agrees with ``difference_jacobian`` to its error (1e-8 relative
+    ZernikeResult at x. Agrees with central differences (the tests' check) to their error (1e-8 relative
     at the default bench.fd_steps; tests/test_observability.py).
     """
     x = np.atleast_2d(np.asarray(x, dtype=float))
     J, _, res = model.jacobians(x, uv0=uv, check_range=check_range)
     return J, res.valid, res
-
-
-def difference_jacobian(model: ForwardModel, x: ArrayLike, scale: float = 1.0) -> np.ndarray:
-    """Central differences of the model, dz/dx (P, m, 6) at poses x (P, 6), with steps
-    scale * bench.fd_steps: an independent check of ``jacobian`` (12 evaluated poses per
-    pose, rays warm-started from x)."""
-    x = np.atleast_2d(np.asarray(x, dtype=float))
-    base = model.evaluate(x, check_range=False)
-    h = scale * np.asarray(model.bench.fd_steps, dtype=float)
-    cols = []
-    for j in range(6):
-        e = np.eye(6)[j] * h[j]
-        zp = model.evaluate(x + e, uv0=base.uv, check_range=False).z
-        zm = model.evaluate(x - e, uv0=base.uv, check_range=False).z
-        cols.append((zp - zm) / (2 * h[j]))
-    return np.stack(cols, axis=-1)
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,6 @@ __all__ = [
     "osa_to_noll",
     "noll_to_thorlabs",
     "thorlabs_to_noll",
-    "n_modes_to_order",
     "modes_up_to_order",
     "zernike_monomials",
     "zernike",
@@ -96,16 +95,6 @@ def noll_to_thorlabs(j: int) -> int:
 def thorlabs_to_noll(k: int) -> int:
     """Noll index of Thorlabs WFS mode number k (k >= 1)."""
     return osa_to_noll(int(k) - 1)
-
-
-def n_modes_to_order(n_modes_with_piston: int) -> int:
-    """Radial order whose full set (with piston) has this many modes."""
-    n = 0
-    while (n + 1) * (n + 2) // 2 < n_modes_with_piston:
-        n += 1
-    if (n + 1) * (n + 2) // 2 != n_modes_with_piston:
-        raise ValueError(f"{n_modes_with_piston} is not a complete Zernike order")
-    return n
 
 
 def modes_up_to_order(order: int, piston: bool = False) -> np.ndarray:
