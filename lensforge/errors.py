@@ -8,11 +8,24 @@ from __future__ import annotations
 
 
 class LensforgeError(Exception):
-    """Base class of all errors a user can cause."""
+    """Base class of all errors a user can cause; the CLI prints it as one line ``error: ...``
+    and exits 2.
+
+    Parameters
+    ----------
+    message : str
+        One line naming the file or field at fault and the fix.
+    """
 
 
 class ConfigError(LensforgeError, ValueError):
-    """A bench, tolerance, design or pose file holds a bad key, type or value."""
+    """A bench, tolerance, design or pose file (or an argument) holds a bad key, type or value.
+
+    Parameters
+    ----------
+    message : str
+        One line naming the file and field at fault and the fix.
+    """
 
 
 class LensGeometryError(LensforgeError, ValueError):

@@ -88,3 +88,22 @@ def test_no_module_re_exports_another_modules_names():
         if name in importlib.import_module(mod_name).__all__:
             found.append(f"{mod_name}.{name}")
     assert not found, found
+
+
+def test_type_checking_imports_are_exactly_the_lazy_exports():
+    """lensforge/__init__.py's one source of names is ``_EXPORTS`` (``__all__`` is built from it);
+    the TYPE_CHECKING imports that type checkers read must name the same objects from the same
+    modules, no more and no fewer."""
+    import ast
+
+    src = Path(lf.__file__).read_text()
+    tree = ast.parse(src)
+    block = next(n for n in tree.body if isinstance(n, ast.If) and ast.unparse(n.test) == "TYPE_CHECKING")
+    seen = {}
+    for node in block.body:
+        assert isinstance(node, ast.ImportFrom) and node.level == 1, ast.unparse(node)
+        for alias in node.names:
+            assert alias.asname is None, ast.unparse(node)
+            seen[alias.name] = f"lensforge.{node.module}"
+    assert seen == lf._EXPORTS
+    assert sorted(lf.__all__) == sorted([*lf._EXPORTS, "__version__"])

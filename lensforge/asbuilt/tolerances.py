@@ -563,7 +563,25 @@ _check_fields_match_registry()
 
 
 def load_tolerances(path: str | PathLike[str]) -> Tolerances:
-    """Tolerances from a TOML file (missing keys keep the documented defaults)."""
+    """Tolerances from a TOML file (``kind = "lensforge.tolerances"``); missing keys keep the
+    documented defaults.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The TOML file (layout of ``asbuilt/tolerances-default.toml``).
+
+    Returns
+    -------
+    Tolerances
+        The validated tolerances (lengths mm).
+
+    Raises
+    ------
+    ConfigError
+        An unknown table or key, a wrong type, or a value outside its range (the message
+        names the file, field and unit).
+    """
     p = Path(path)
     return Tolerances.from_dict(read_toml(p, "tolerances file"), where=f"tolerances file {p.name}")
 
@@ -595,10 +613,27 @@ def scale_canonical(cs: CanonicalSurface, s: float) -> CanonicalSurface:
 def sample_as_built(lens: Lens, tolerances: Tolerances, rng: np.random.Generator, validate: bool = True) -> Lens:
     """One as-built lens drawn from the tolerance model (see the module notes).
 
-    Returns a Lens (changed surfaces become Freeform surfaces holding the perturbed
-    canonical form) that the tracer uses like any other; with zero tolerances the
-    nominal lens itself. validate: run Lens.validate() on the draw (about 10 ms;
-    raises LensGeometryError if the draw is not a physical lens).
+    Parameters
+    ----------
+    lens : Lens
+        The nominal lens.
+    tolerances : Tolerances
+        The tolerance model (material-derived values are filled from the lens's material).
+    rng : numpy.random.Generator
+        Source of the draws (a fixed number in a fixed order, whatever the values).
+    validate : bool
+        Run ``Lens.validate()`` on the draw (about 10 ms).
+
+    Returns
+    -------
+    Lens
+        The as-built lens: changed surfaces become Freeform surfaces holding the perturbed
+        canonical form; with zero tolerances the nominal lens itself.
+
+    Raises
+    ------
+    LensGeometryError
+        With ``validate``, a draw that is not a physical lens.
     """
     if not isinstance(rng, np.random.Generator):
         raise ConfigError("rng: pass a numpy Generator, e.g. np.random.default_rng(seed)")

@@ -395,10 +395,34 @@ def export_stl(lens: Lens, path: str | PathLike[str], chord_tol_mm: float = 1e-3
                features: FeatureSpec | None = None, n_rings: int | None = None) -> StlExport:
     """Write the lens as a binary STL (atomically) after validating the mesh.
 
-    chord_tol_mm: largest allowed deviation of the triangles from the analytic part (mm);
-    fiducial: False, True (= 'flat'), 'flat' or 'notch'; tab: add a gripper tab;
-    features: a full FeatureSpec (overrides fiducial/tab); n_rings: force the ring count.
-    Raises LensforgeError if the mesh is not watertight, manifold and of genus 0.
+    Parameters
+    ----------
+    lens : Lens
+        The lens ({O}, mm).
+    path : str or os.PathLike
+        Destination file.
+    chord_tol_mm : float
+        Largest allowed deviation of the triangles from the analytic part, mm.
+    fiducial : bool or str
+        False, True (= 'flat'), 'flat' or 'notch'.
+    tab : bool
+        Add a gripper tab.
+    features : FeatureSpec, optional
+        A full feature spec (overrides fiducial and tab).
+    n_rings : int, optional
+        Force the ring count of the triangulation.
+
+    Returns
+    -------
+    StlExport
+        Path, triangle count, chord errors (mm), volumes (mm^3), watertight/manifold checks.
+
+    Raises
+    ------
+    LensforgeError
+        The mesh is not watertight, manifold and of genus 0.
+    MissingDependencyError
+        trimesh/manifold3d are not installed (``pip install 'lensforge[export]'``).
     """
     t0 = time.perf_counter()
     spec = features if features is not None else features_from_args(fiducial, tab)

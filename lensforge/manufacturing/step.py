@@ -360,10 +360,33 @@ def export_step(lens: Lens, path: str | PathLike[str], fiducial: bool | str = Fa
                 grid: int | None = None) -> StepExport:
     """Write the lens as an AP214 STEP solid (atomically) and verify it by reading it back.
 
-    deviation_goal_mm: largest allowed B-spline deviation from the analytic sag (mm,
-    default 10 nm); grid: force the interpolation grid (nodes per side).
-    Raises LensforgeError if the solid is not valid and closed; the result reports the
-    measured deviation and the re-import volume error (goal |error| <= 1e-6).
+    Parameters
+    ----------
+    lens : Lens
+        The lens ({O}, mm).
+    path : str or os.PathLike
+        Destination file.
+    fiducial : bool or str
+        False, True (= 'flat'), 'flat' or 'notch'.
+    tab : bool
+        Add a gripper tab.
+    features : FeatureSpec, optional
+        A full feature spec (overrides fiducial and tab).
+    deviation_goal_mm : float
+        Largest allowed B-spline deviation from the analytic sag, mm (default 10 nm).
+    grid : int, optional
+        Force the interpolation grid (nodes per side).
+
+    Returns
+    -------
+    StepExport
+        Path, measured deviation (mm), grid, validity, volumes (mm^3) and the re-import
+        volume error (goal |error| <= 1e-6).
+
+    Raises
+    ------
+    LensforgeError
+        The solid is not valid and closed.
     """
     t0 = time.perf_counter()
     spec = features if features is not None else features_from_args(fiducial, tab)

@@ -694,10 +694,33 @@ def kernel_tangents(plus: list, minus: list, spacing) -> LensTangents:
 
 def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None,
                pose_derivatives: bool = False, lens_tangents: LensTangents | None = None) -> TraceResult:
-    """Trace beam rays with transverse coordinates uv (mm, relative to the beam centre;
-    (N, 2) for every pose, or (P, N, 2) per pose) through the lens at each pose (P, 6)
-    to the sensor plane, with the derivatives of where they land and of their slopes
-    along u and v, along the pose when ``pose_derivatives`` and along each lens tangent.
+    """Trace beam rays through the lens at each pose to the sensor plane, with exact
+    derivatives of where they land and of their slopes.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench (beam, placement).
+    lens : Lens
+        The lens.
+    poses : array_like, shape (P, 6) or (6,)
+        Poses (mm, rad) about nominal.
+    uv : array_like, shape (N, 2) or (P, N, 2)
+        Beam coordinates (mm, relative to the beam centre): the same for every pose, or per pose.
+    kernel : LensKernel, optional
+        The lens packed for the kernels (default: packed here).
+    pose_derivatives : bool
+        Also return d(x, y, L/N, M/N)/d(pose).
+    lens_tangents : LensTangents, optional
+        Also return the derivatives along these lens-parameter directions.
+
+    Returns
+    -------
+    TraceResult
+        ``xy`` (P, N, 2) mm in {S}, ``direction`` (P, N, 3), ``status`` (P, N) (0 = OK),
+        ``derivatives`` (P, N, 4, 2) along (u, v), ``pose_derivatives`` (P, N, 4, 6) per mm
+        and per rad or None, ``lens_derivatives`` (P, N, 4, l) or None; zero where status
+        is not OK.
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
