@@ -92,3 +92,32 @@ print("HEAVY", heavy)
     assert "HEAVY []" in r.stdout
     r = _cli("--help", blocked=CAD + MESH, cwd=tmp_path)
     assert r.returncode == 0 and "calibrate" in r.stdout, r.stderr
+
+
+def test_base_dependencies_do_not_bring_the_export_stack():
+    """pyproject: the CAD and mesh stack is the `export` extra, and `make` installs it; the base
+    requirements' closure (as installed here) holds none of it."""
+    import tomllib
+    from importlib import metadata
+
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    heavy = {"cadquery", "cadquery-ocp", "vtk", "trimesh", "manifold3d"}
+    base = [Requirement(r) for r in project["dependencies"]]
+    assert not {r.name.lower() for r in base} & heavy
+    assert heavy - {"cadquery-ocp", "vtk"} <= {Requirement(r).name.lower() for r in project["optional-dependencies"]["export"]}
+    assert '".[export,test,bench]"' in (ROOT / "Makefile").read_text()
+    seen, todo = set(), list(base)
+    while todo:
+        req = todo.pop()
+        name = req.name.lower().replace("_", "-")
+        if name in seen:
+            continue
+        seen.add(name)
+        try:
+            requires = metadata.distribution(req.name).requires or []
+        except metadata.PackageNotFoundError:
+            continue
+        todo += [r for r in map(Requirement, requires) if r.marker is None or r.marker.evaluate({"extra": ""})]
+    assert not seen & heavy, sorted(seen & heavy)
