@@ -9,6 +9,8 @@ thread is the one the OS has descheduled. Rows:
 
 - ``default``: what the library does with nothing set (``LENSFORGE_NUM_THREADS`` unset);
 - ``threads=n``: ``LENSFORGE_NUM_THREADS=n`` with numba's pool allowed n threads;
+- ``serial``: the same kernels compiled with ``parallel=False`` (``prange`` runs as ``range``),
+  swapped in for this row only: what a parallel kernel on one thread costs over a serial one;
 - each idle and with a busy-loop process started beside it (``loaded``).
 
 Medians and 90th percentiles over single calls (a best-of would hide the contention).
@@ -41,6 +43,7 @@ def main() -> None:
     ap.add_argument("--lens", default="zernike")
     ap.add_argument("--reps", type=int, default=60)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--no-serial", action="store_true", help="skip the serial-kernel row (compiles two kernels)")
     args = ap.parse_args()
 
     import numba
@@ -55,7 +58,17 @@ def main() -> None:
     n_max = numba.config.NUMBA_NUM_THREADS
     print(f"numba pool: {n_max} threads, layer {numba.config.THREADING_LAYER}; cores {os.cpu_count()}; "
           f"load average {os.getloadavg()[0]:.2f}")
+    import numba as nb
+
+    from lensforge.optics import trace
+
+    parallel_kernels = {"_trace_grid": trace._trace_grid, "_aim": trace._aim}
+    serial_kernels = {} if args.no_serial else {
+        k: nb.njit(cache=False, parallel=False, fastmath=v.targetoptions.get("fastmath", False))(v.py_func)
+        for k, v in parallel_kernels.items()}
     configs = [("default", None)] + [(f"threads={n}", n) for n in args.threads if n <= n_max]
+    if serial_kernels:
+        configs.append(("serial", "serial"))
     for load in ("idle", "loaded"):
         hog = None
         if load == "loaded":
@@ -65,17 +78,23 @@ def main() -> None:
             for name, n in configs:
                 os.environ.pop("LENSFORGE_NUM_THREADS", None)
                 numba.set_num_threads(n_max)
-                if n is not None:
+                if isinstance(n, int):
                     os.environ["LENSFORGE_NUM_THREADS"] = str(n)
                     numba.set_num_threads(n)
-                t = _time_calls(job, args.reps) * 1e3
+                for k, v in (serial_kernels if n == "serial" else parallel_kernels).items():
+                    setattr(trace, k, v)
+                try:
+                    t = _time_calls(job, args.reps) * 1e3
+                finally:
+                    for k, v in parallel_kernels.items():
+                        setattr(trace, k, v)
                 print(f"{load:6s} {name:10s} S(p) median {np.median(t):7.2f} ms  p90 {np.percentile(t, 90):7.2f} ms  "
                       f"min {t.min():6.2f} ms")
         finally:
             if hog is not None:
                 hog.kill()
                 hog.wait()
-    print(f"load average after: {os.getloadavg()[0]:.2f}")
+    print(f"threading layer used: {numba.threading_layer()}; load average after: {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":
