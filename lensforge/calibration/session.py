@@ -244,7 +244,9 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     Raises
     ------
     ConfigError
-        Bad input; CalibrationError when too few candidate poses are reachable and lit.
+        Bad input (e.g. n < 3), or no candidate that is lit and reachable.
+    PoseRangeError
+        Fewer than n lit candidate poses the robot can reach in the working box.
     """
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
