@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, ExceptionWrapper, LensforgeError, MissingDependencyError
+from ..fileio import write_atomic
+from ..optics.lens import Lens
+from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
 
 MESH_STACK_MISSING = "STL/3MF export needs trimesh and manifold3d: pip install 'lensforge[export]'"
 try:  # the `export` extra: calibrating a robot does not need the mesh stack installed
@@ -30,9 +33,6 @@ try:  # the `export` extra: calibrating a robot does not need the mesh stack ins
     import trimesh
 except ImportError as _exc:
     m3 = trimesh = ExceptionWrapper(MissingDependencyError(MESH_STACK_MISSING), _exc)
-from ..fileio import write_atomic
-from ..optics.lens import Lens
-from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
 
 __all__ = [
     "disc_triangulation",

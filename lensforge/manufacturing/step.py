@@ -25,7 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, LensforgeError, MissingDependencyError
+from ..fileio import write_atomic
+from ..optics.lens import Lens
+from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
+from .mesh import features_from_args
 
+# Every line below needs OCP, so a missing CAD stack fails the import itself, with one line naming the
+# extra (the importers, report.export_lens and the package's lazy ``export_step``, import it only for a
+# STEP). mesh.py instead binds an ExceptionWrapper: it also holds numpy-only helpers others import.
 CAD_STACK_MISSING = "STEP export needs the CAD stack: pip install 'lensforge[export]'"
 try:  # the `export` extra (cadquery's OCP, with vtk): only STEP export imports this module
     from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
@@ -52,11 +59,6 @@ try:  # the `export` extra (cadquery's OCP, with vtk): only STEP export imports 
     from OCP.TopTools import TopTools_ListOfShape
 except ImportError as _exc:
     raise MissingDependencyError(CAD_STACK_MISSING) from _exc
-
-from ..fileio import write_atomic
-from ..optics.lens import Lens
-from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
-from .mesh import features_from_args
 
 __all__ = ["SagPatch", "StepSolid", "StepExport", "sag_patch", "build_step_solid", "solid_report", "read_step",
            "export_step"]
