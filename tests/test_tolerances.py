@@ -257,3 +257,31 @@ def test_registry_builds_tolerances_ranges_and_file_layout():
 
     t = Tolerances().scaled("form", 2.0)
     assert pickle.loads(pickle.dumps(t)) == t  # studies ship it to Dask workers
+
+
+def test_tolerances_fields_are_typed_and_are_the_registrys():
+    """Tolerances declares one typed field per registry field, in the registry's order, with
+    the registry's default; a default instance's values have the declared types."""
+    import dataclasses
+    import types
+    import typing
+
+    from lensforge.asbuilt.tolerances import COMPONENT_SPECS, Tolerances
+
+    reg = [f for c in COMPONENT_SPECS.values() for f in c.fields]
+    fs = dataclasses.fields(Tolerances)
+    assert [f.name for f in fs] == [f.attr for f in reg]
+    assert [f.default for f in fs] == [f.default for f in reg]
+    hints = typing.get_type_hints(Tolerances)
+    assert all(hints[f.name] is not typing.Any for f in fs)
+    t = Tolerances()
+    for f in fs:
+        hint = hints[f.name]
+        v = getattr(t, f.name)
+        if isinstance(hint, types.UnionType):
+            assert v is None or isinstance(v, typing.get_args(hint)[0]), f.name
+        elif typing.get_origin(hint) is tuple:
+            item = typing.get_args(hint)[0]
+            assert isinstance(v, tuple) and all(isinstance(x, item) for x in v), f.name
+        else:
+            assert isinstance(v, hint) and not isinstance(v, bool), f.name

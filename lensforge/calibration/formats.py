@@ -349,8 +349,27 @@ def _sniff_pose_format(path: Path) -> str:
 
 
 def read_robot_poses(path: str | os.PathLike[str], fmt: str | None = None) -> PoseTable:
-    """Robot flange poses ^W T_E (mm) by id; fmt a POSE_READERS name, or None to detect
-    it (.json -> json_4x4; a CSV header with qw -> quaternion_csv, else xyzabc_csv)."""
+    """Robot flange poses ^W T_E by pose id.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV ``pose,X,Y,Z,A,B,C`` (mm, degrees, KUKA R = Rz(A) Ry(B) Rx(C)), a CSV
+        ``pose,x,y,z,qw,qx,qy,qz`` with a ``# units:`` line, or JSON 4x4.
+    fmt : str, optional
+        A ``POSE_READERS`` name, or None to detect it (.json -> json_4x4; a CSV header with
+        qw -> quaternion_csv, else xyzabc_csv).
+
+    Returns
+    -------
+    PoseTable
+        ``ids`` (n,) strings, ``T`` (n, 4, 4) mm, ``source``, ``rows`` (line numbers).
+
+    Raises
+    ------
+    ConfigError
+        A bad file (one line naming the file, row and field).
+    """
     path = Path(path)
     fmt = fmt or _sniff_pose_format(path)
     if fmt not in POSE_READERS:
@@ -466,7 +485,27 @@ WFS_READERS = {"wfs_csv": read_wfs_csv, "wfs_json": read_wfs_json}
 
 
 def read_wfs(path: str | os.PathLike[str], fmt: str | None = None) -> WfsData:
-    """WFS measurements by id; fmt a WFS_READERS name or None (by extension: .json -> wfs_json)."""
+    """WFS Zernike measurements by pose id.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV (one row per pose id, Zernike um in Thorlabs order, mode k = OSA j + 1) or JSON.
+    fmt : str, optional
+        A ``WFS_READERS`` name, or None (by extension: .json -> wfs_json, else the CSV reader).
+
+    Returns
+    -------
+    WfsData
+        ``ids`` (n,), ``zernike`` (n, K) um in Thorlabs order (piston first), ``order``
+        (radial order of the K modes) and the file's header (wavelength_nm,
+        pupil_center_mm, pupil_radius_mm where given).
+
+    Raises
+    ------
+    ConfigError
+        A bad file (one line naming the file, row and field).
+    """
     path = Path(path)
     fmt = fmt or ("wfs_json" if path.suffix.lower() == ".json" else "wfs_csv")
     if fmt not in WFS_READERS:

@@ -218,7 +218,24 @@ def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
 
 
 def load_robot(spec: str | Path | None = None) -> RobotModel:
-    """A robot by registry name (``ROBOTS``: kr10_r1100_sixx, ur5e) or TOML path; None = KR 10."""
+    """A robot model by registry name or TOML file.
+
+    Parameters
+    ----------
+    spec : str or pathlib.Path, optional
+        A ``ROBOTS`` name (kr10_r1100_sixx, ur5e) or a robot TOML path; None: the KR 10.
+
+    Returns
+    -------
+    RobotModel
+        Kinematics (mm, rad), joint limits, repeatability (the robot noise) and the cell's
+        nominal placement.
+
+    Raises
+    ------
+    ConfigError
+        An unknown name or a bad file.
+    """
     spec = "kr10_r1100_sixx" if spec is None else spec
     key = str(spec)
     if key in ROBOTS:

@@ -188,17 +188,49 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
          n_random_sets: int = 5) -> Plan:
     """Calibration poses for the joint calibration (see the module docstring).
 
-    design: design file / paper lens name / Lens; robot: RobotModel, registry name or
-    TOML path (default KR 10); n: poses; tolerances: the tolerance model of the
-    as-built lens prior (as ``calibrate``'s: "default", a TOML path or Tolerances;
-    None or "none": the lens as designed, the design of the known-lens problem);
-    work_*: the box about nominal the poses are drawn from (ASSUMPTION +-0.5 mm,
-    +-5 deg, as verification/scenario.py); lit_margin_mm: lateral margin a pose must
-    keep lit; n_random_sets: random n-pose plans of the lit candidates the design is
-    compared with (median). The choice is ``joint_design.design_joint_poses`` (Ds-optimal
-    for Z with X, the robot errors and the lens parameters theta as nuisances; theta
-    from ``lens_params.parameterise`` over the lit candidates). Every pose is
-    reach-checked by inverse kinematics and pupil-lit on the design's model.
+    The choice is ``joint_design.design_joint_poses`` (Ds-optimal for Z with X, the robot
+    errors and the lens parameters theta as nuisances; theta from
+    ``lens_params.parameterise`` over the lit candidates). Every pose is reach-checked by
+    inverse kinematics and pupil-lit on the design's model.
+
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    robot : RobotModel or str, optional
+        RobotModel, registry name or TOML path (default KR 10).
+    n : int
+        Number of poses.
+    seed : int
+        Seed of the candidates and of the random comparison plans.
+    tolerances : Tolerances, str or os.PathLike, optional
+        The tolerance model of the as-built lens prior ("default", a TOML path or
+        Tolerances); None or "none": the lens as designed (the known-lens problem).
+    work_translation_mm, work_rotation_rad : float
+        Half-widths of the box about nominal the poses are drawn from (ASSUMPTION
+        +-0.5 mm, +-5 deg, as verification/scenario.py).
+    lit_margin_mm : float
+        Lateral margin a pose must keep lit, mm.
+    n_candidates : int
+        Candidate poses the design chooses from.
+    n_random_sets : int
+        Random n-pose plans of the lit candidates the design is compared with (median).
+
+    Returns
+    -------
+    Plan
+        ``ids``, ``x`` (n, 6) lens poses (mm, rad), ``A`` (n, 4, 4) flange poses (mm),
+        ``joints`` (n, 6) rad, the predicted Z 1-sigma ``z_std`` (6,) (mm, rad) with and
+        without the lens free, and ``files()`` (CSV, JSON 4x4, KRL).
+
+    Raises
+    ------
+    ConfigError
+        Bad input (e.g. n < 3), or no candidate that is lit and reachable.
+    PoseRangeError
+        Fewer than n lit candidate poses the robot can reach in the working box.
     """
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
@@ -250,9 +282,28 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
 def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
     """One lens pose with its covariance from one WFS measurement.
 
-    measurement: WFS CSV/JSON path or WfsData; pose_id selects a row (default: the
-    file must hold exactly one). Returns {"pose_id", "estimate": PoseEstimate,
-    "bench": the bench used}."""
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    measurement : str, os.PathLike or WfsData
+        WFS CSV/JSON path or WfsData.
+    bench : Bench, optional
+        Default: the design's bench, adjusted to the measurement's header.
+    pose_id : str, optional
+        The row to use (default: the file must hold exactly one).
+
+    Returns
+    -------
+    dict
+        ``pose_id``, ``estimate`` (PoseEstimate: pose (6,) mm and rad, cov (6, 6)) and
+        ``bench`` (the bench used).
+
+    Raises
+    ------
+    ConfigError
+        A bad file or pose id.
+    """
     lens, bench = load_design_lens(design, bench)
     wfs = _as_table(measurement, formats.read_wfs)
     if pose_id is None:
@@ -309,15 +360,39 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
               progress: Callable[[int, int], None] | None = None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
-    design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
-    WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
-    name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
-    ``pipeline.METHODS`` name ("joint", the default: the as-built lens estimated with
-    X and Z, ``session_joint``; "two-stage": nominal lens); tolerances: the tolerance
-    model of the joint method's lens prior ("default": the package's file, or a TOML
-    path; two-stage ignores it); progress: optional callable (done, total) called after each
-    lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
-    than 3 usable poses.
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    measurements : str, os.PathLike or WfsData
+        WFS CSV/JSON path or WfsData.
+    robot_poses : str, os.PathLike or PoseTable
+        Flange-pose CSV/JSON path or PoseTable.
+    bench : Bench, optional
+        Default: the design's bench, adjusted to the measurements' header.
+    robot : RobotModel or str, optional
+        RobotModel, name or TOML (repeatability -> robot noise; [cell] -> initial guesses).
+    method : str
+        A ``pipeline.METHODS`` name: "joint" (the default: the as-built lens estimated with
+        X and Z, ``session_joint``) or "two-stage" (nominal lens).
+    tolerances : Tolerances, str or os.PathLike, optional
+        The tolerance model of the joint method's lens prior ("default": the package's
+        file, or a TOML path; two-stage ignores it).
+    outlier_alpha : float
+        Significance of the chi-square outlier test per pose.
+    progress : callable, optional
+        Called (done, total) after each lens-pose estimate.
+
+    Returns
+    -------
+    CalibrationResult
+        ``X`` = ^E T_O and ``Z`` = ^W T_S (4x4, mm), the hand-eye result with covariances,
+        poses used and rejected, per-pose chi2, the model check's p-value, warnings.
+
+    Raises
+    ------
+    ConfigError, CalibrationError
+        Bad input or fewer than 3 usable poses.
     """
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")

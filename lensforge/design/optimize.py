@@ -41,8 +41,7 @@ from .design_file import Design, metrics_dict
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
 
-__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
-           "RobustSpec"]
+__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
@@ -377,20 +376,61 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
                     template: Lens | None = None, robust: RobustSpec | None = None) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
 
-    bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
-    'zernike', 'conic'; method: 'nelder-mead', 'pso', 'ga', 'cmaes'; seed: int (same
-    seed, same result); criterion: 'J' (paper), 'D' or 'A'; weights: (w1, w2) of J;
-    free / bounds: see ``parameterisation``; constraints: :class:`Constraints`;
-    max_evals: cost evaluations (default per method, DEFAULT_MAX_EVALS); start:
-    'paper' (the template lens's vector if feasible, else random), 'random' or a
-    parameter vector; n_starts: Nelder-Mead starts (the 1st from ``start``, the
-    rest random feasible); particles (PSO); population (GA, CMA-ES); sigma0: CMA-ES
-    step in the unit box; ftol: relative stopping tolerance on the cost;
-    time_limit_s: wall-clock limit; progress: rich progress bar on stderr;
-    robust: a :class:`RobustSpec` to minimise the statistic of the criterion over
-    as-built draws (common random numbers) instead of the nominal criterion; the
-    design's ``robust`` record holds the spec and the returned lens's robust cost.
-    Raises ConfigError for bad settings and DesignError for an infeasible problem.
+    Parameters
+    ----------
+    bench : Bench, optional
+        Default ``Bench.default()``.
+    model : str
+        'polynomial', 'extended_polynomial', 'zernike' or 'conic'.
+    method : str
+        'nelder-mead', 'pso', 'ga' or 'cmaes' (the registry ``METHODS``).
+    seed : int
+        Same seed, same result.
+    criterion : str
+        'J' (paper), 'D' or 'A'.
+    weights : sequence of float
+        (w1, w2) of J.
+    free, bounds : str, sequence or dict, optional
+        Free parameters and their search box (see ``design.parameterisation``).
+    constraints : Constraints, optional
+        Thickness, TIR, lit pupil over the working range.
+    max_evals : int, optional
+        Cost evaluations (default per method, DEFAULT_MAX_EVALS).
+    start : str or numpy.ndarray
+        'paper' (the template lens's vector if feasible, else random), 'random' or a
+        parameter vector.
+    n_starts : int
+        Nelder-Mead starts (the first from ``start``, the rest random feasible).
+    particles : int
+        PSO swarm size.
+    population : int, optional
+        GA and CMA-ES population.
+    sigma0 : float
+        CMA-ES step in the unit box.
+    ftol : float, optional
+        Relative stopping tolerance on the cost.
+    time_limit_s : float, optional
+        Wall-clock limit, s.
+    progress : bool
+        Progress bar on stderr.
+    template : Lens, optional
+        The lens whose fixed parameters the design keeps (default: the paper's lens of ``model``).
+    robust : RobustSpec, optional
+        Minimise the statistic of the criterion over as-built draws (common random
+        numbers) instead of the nominal criterion; the design's ``robust`` record holds
+        the spec and the returned lens's robust cost.
+
+    Returns
+    -------
+    Design
+        The best feasible design with its metrics and provenance.
+
+    Raises
+    ------
+    ConfigError
+        Bad settings.
+    DesignError
+        An infeasible problem.
     """
     bench = bench or Bench.default()
     meth = check_method(method)

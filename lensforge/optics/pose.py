@@ -92,7 +92,19 @@ def rotvecs(R) -> np.ndarray:
 
 
 def pose_to_matrix(x: ArrayLike) -> np.ndarray:
-    """4x4 transform(s) [R(r), t; 0, 1] of pose vector(s) (..., 6)."""
+    """Homogeneous transform(s) [R(r), t; 0, 1] of pose vector(s).
+
+    Parameters
+    ----------
+    x : array_like, shape (..., 6)
+        Pose vectors (tx, ty, tz, rx, ry, rz): translation in mm and a rotation vector
+        (axis times angle) in rad.
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 4, 4)
+        The transforms, R = exp([r]x).
+    """
     x = np.asarray(x, dtype=float)
     T = np.zeros(x.shape[:-1] + (4, 4))
     T[..., :3, :3] = rotations(x[..., 3:])
@@ -102,13 +114,36 @@ def pose_to_matrix(x: ArrayLike) -> np.ndarray:
 
 
 def matrix_to_pose(T: ArrayLike) -> np.ndarray:
-    """Pose vector(s) (..., 6) of 4x4 transform(s)."""
+    """Pose vector(s) of homogeneous transform(s).
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Rigid transforms (orthonormal rotation block).
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 6)
+        (tx, ty, tz, rx, ry, rz): translation in the transforms' unit (mm in lensforge) and
+        the rotation vector in rad (angle in [0, pi]).
+    """
     T = np.asarray(T, dtype=float)
     return np.concatenate([T[..., :3, 3], rotvecs(T[..., :3, :3])], axis=-1)
 
 
 def invert_poses(T: ArrayLike) -> np.ndarray:
-    """Inverse(s) of rigid transform(s) (..., 4, 4), exact for orthonormal R."""
+    """Inverse(s) of rigid transform(s), exact for an orthonormal rotation block.
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Rigid transforms [R, t; 0, 1].
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 4, 4)
+        [R^T, -R^T t; 0, 1].
+    """
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
     t = T[..., :3, 3]
@@ -179,6 +214,19 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 
 def transform_error(T_true: np.ndarray, T_est: np.ndarray) -> tuple[float, float]:
-    """(rotation deg, translation mm) of T_true^-1 T_est."""
+    """Rotation and translation error of an estimated transform against the true one.
+
+    Parameters
+    ----------
+    T_true, T_est : numpy.ndarray, shape (4, 4)
+        True and estimated rigid transforms (translations in mm).
+
+    Returns
+    -------
+    rotation_deg : float
+        Rotation angle of T_true^-1 T_est, degrees.
+    translation_mm : float
+        Distance between the two translations |t_est - t_true|, mm.
+    """
     E = np.linalg.solve(T_true, T_est)
     return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))

@@ -213,7 +213,18 @@ class ForwardModel:
     """z = h(x, p) for one bench and lens: the posed lens -> SH Zernike coefficients.
 
     Holds the packed lens and the fixed pupil; stateless otherwise, so it can be
-    shared between threads and pickled to workers.
+    shared between threads and pickled to workers. ``evaluate(poses)`` gives a
+    ZernikeResult, ``zernike(poses, rng)`` the (noisy) vector, ``jacobians(poses)`` the
+    exact dz/dx.
+
+    Parameters
+    ----------
+    bench : Bench
+        Laser, placement, sensor, noise and pose limits.
+    lens : Lens
+        The lens (mm).
+    validate : bool
+        Check the lens first (LensGeometryError when it is not physical).
     """
 
     def __init__(self, bench: Bench, lens: Lens, validate: bool = True):
@@ -412,10 +423,31 @@ class ForwardModel:
 
 
 def measure(bench: Bench, lens: Lens, pose: ArrayLike | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
-    """Zernike vector (um, Noll modes 2..) the SH sensor reports for the lens at ``pose``.
+    """The Zernike vector the SH sensor reports for the lens at a pose.
 
-    pose: (6,) or (P, 6) pose vector(s) (mm, rad) relative to the nominal placement
-    (default: nominal). Noise is added when an rng is given.
+    Parameters
+    ----------
+    bench : Bench
+        The bench.
+    lens : Lens
+        The lens.
+    pose : array_like, shape (6,) or (P, 6), optional
+        Pose vector(s) (tx, ty, tz in mm; rx, ry, rz rotation vector in rad) relative to the
+        nominal placement (default: nominal).
+    rng : numpy.random.Generator, optional
+        When given, slope noise of ``bench.noise`` is added before the Zernike fit.
+
+    Returns
+    -------
+    numpy.ndarray, shape (m,) or (P, m)
+        Coefficients in um of wavefront, Noll modes 2.. (piston is never part of z),
+        RMS-normalised.
+
+    Raises
+    ------
+    PupilError, SensorRangeError, TraceError, PoseRangeError
+        A pose at which the lens cannot be measured (unlit pupil, spot out of range,
+        rays lost, pose out of the bench's limits).
     """
     pose = np.zeros(6) if pose is None else pose
     return ForwardModel(bench, lens).zernike(pose, rng=rng)

@@ -41,7 +41,7 @@ from ..errors import ConfigError
 from ..interrupts import Interrupted
 from ..progress import progress_bar
 
-__all__ = ["TrialStore", "config_hash", "trial_seeds", "trial_seed", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV",
+__all__ = ["TrialStore", "config_hash", "trial_seed", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV",
            "single_threaded"]
 
 STORE_SCHEMA = 1
@@ -81,11 +81,6 @@ class _LazySeeds:
         if not 0 <= i < self.n:
             raise IndexError(i)
         return trial_seed(self.seed, i)
-
-
-def trial_seeds(seed: int, n: int) -> list[np.random.SeedSequence]:
-    """Per-trial seed sequences: child i of SeedSequence(seed), independent of n."""
-    return [trial_seed(seed, i) for i in range(int(n))]
 
 
 def _dumps(record: dict) -> str:

@@ -125,11 +125,36 @@ class SimulatedSession:
 def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
                      bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
                      grasp: InitialPoseModel | None = None, session_plan: Plan | None = None) -> SimulatedSession:
-    """Simulate one bench session (see the module docstring).
+    """Simulate one bench session: the files a real session writes, to rehearse ``calibrate``
+    (see the module docstring).
 
-    tolerances: Tolerances, a TOML path, "default" (the default tolerance file) or
-    None (the lens exactly as designed); seed: everything random flows from it;
-    session_plan: reuse a Plan (else ``plan(design, robot=robot, n=n, seed=seed)``).
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    tolerances : Tolerances, str, pathlib.Path or None
+        Tolerances, a TOML path, "default" (the default tolerance file) or None (the lens
+        exactly as designed).
+    seed : int
+        Everything random flows from it.
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    robot : RobotModel or str, optional
+        RobotModel, registry name or TOML path (default KR 10).
+    n : int
+        Calibration poses.
+    grasp : InitialPoseModel, optional
+        How the gripper holds the lens (default: ``initial_poses``' model).
+    session_plan : Plan, optional
+        Reuse a Plan (else ``plan(design, robot=robot, n=n, seed=seed)``).
+
+    Returns
+    -------
+    SimulatedSession
+        ``ids``, recorded and true flange poses ``A_recorded`` / ``A_true`` (n, 4, 4) mm,
+        ``wfs_ids`` (the lit poses), ``zernike_thorlabs`` (k, K) um in Thorlabs order, the
+        true ``Z`` and ``X`` (4x4, mm), the as-built ``lens``, ``x_true`` (n, 6) and the plan;
+        ``files()`` gives robot_poses.csv, wfs_zernike.csv and truth.json as text.
     """
     lens, bench = load_design_lens(design, bench)
     tolerances = resolve_tolerances(tolerances)[0]

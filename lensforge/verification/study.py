@@ -472,19 +472,50 @@ def verify(design_or_lens: LensSpec, tolerances: Tolerances | str | Path | None,
            description: str = "as-built lenses", plan: np.ndarray | None = None) -> StudyResult:
     """As-built Monte Carlo of the calibration for ``n_lenses`` as-built lenses.
 
-    design_or_lens: Lens, Design, paper lens name or design JSON path; tolerances:
-    Tolerances, TOML path, or None (noise only; ``Tolerances.zero()`` gives the same
-    numbers); seed: study seed (trial i uses child i of SeedSequence(seed));
-    config: the study's options (poses per lens, calibration method, targets; default
-    ``StudyConfig()``); workers: 0 = in this process, N = local Dask cluster of N processes (default:
-    all cores); scheduler: address of an existing Dask scheduler; store: SQLite file
-    to append finished trials to (resume=True continues a killed study; the store
-    refuses a different study); description: the progress bar's label;
-    plan: (n, 6) calibration plan (lens pose vectors, mm and rad, relative to nominal,
-    e.g. a joint design's; n_poses becomes n) instead of the seeded random box.
-    Returns a :class:`StudyResult` (errors in deg and mm).
     A script that starts a local cluster (workers != 0) needs the usual
     ``if __name__ == "__main__":`` guard (worker processes are spawned).
+
+    Parameters
+    ----------
+    design_or_lens : LensSpec
+        Lens, Design, paper lens name or design JSON path.
+    tolerances : Tolerances, str, pathlib.Path or None
+        Tolerances, a TOML path, or None (noise only; ``Tolerances.zero()`` gives the same numbers).
+    n_lenses : int
+        As-built lenses (trials).
+    seed : int
+        Study seed: trial i uses child i of SeedSequence(seed).
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    config : StudyConfig, optional
+        The study's options: poses per lens, calibration method ("two-stage", or "joint" which
+        also runs the two-stage method on the same data), targets (default ``StudyConfig()``).
+    workers : int, optional
+        0 = in this process, N = local Dask cluster of N processes (default: all cores).
+    scheduler : str, optional
+        Address of an existing Dask scheduler.
+    store : str or os.PathLike, optional
+        SQLite file to append finished trials to.
+    resume : bool
+        Continue a killed study from ``store`` (the store refuses a different study).
+    progress : bool
+        Progress bar on stderr.
+    plan_seed : int
+        Seed of the random calibration-pose box.
+    client : distributed.Client, optional
+        An existing Dask client.
+    description : str
+        The progress bar's label.
+    plan : numpy.ndarray, shape (n, 6), optional
+        Calibration plan (lens pose vectors, mm and rad, relative to nominal, e.g. a joint
+        design's; n_poses becomes n) instead of the seeded random box.
+
+    Returns
+    -------
+    StudyResult
+        Per-trial records, ``rot_err_deg`` and ``trans_err_mm`` (n,) of Z (nan for failed
+        trials), per-trial bias (n, 6) mm and rad, ``ok`` (n,), the summary statistics,
+        the hashed configuration and ``config_hash``.
     """
     if int(n_lenses) != n_lenses or n_lenses < 1:
         raise ConfigError(f"n_lenses: need an integer >= 1, got {n_lenses!r}")
