@@ -92,3 +92,12 @@ class ExceptionWrapper:
 
     def __call__(self, *args, **kwargs):
         raise object.__getattribute__(self, "_error")
+
+
+class ModelCheckError(CalibrationError):
+    """A fit ran but fails its chi2 model check: the data do not fit the model (exit status 3).
+
+    Raised by the CLI after the diagnostics are written (``valid: false`` and the reason, no
+    file a robot cell would load); the message names the likely mistake where one is found."""
+
+    exit_code = 3

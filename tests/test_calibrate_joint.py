@@ -100,7 +100,8 @@ def test_a_start_that_lights_fewer_poses_loses(session):
     kept must be the one from the cell's nominal X, Z that explains every lit pose, with
     the true Z inside 3 sigma."""
     from lensforge.calibration.session import match_session
-    from lensforge.calibration.session_joint import best_joint_fit, resolve_tolerances
+    from lensforge.asbuilt.tolerances import resolve_tolerances
+    from lensforge.calibration.session_joint import best_joint_fit
     from lensforge.optics.pose import pose_to_matrix
 
     s, paths = session

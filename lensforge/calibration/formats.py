@@ -56,7 +56,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
-from ..fileio import dumps_json, read_json, write_atomic
+from ..interrupts import committing
+from ..fileio import MAX_TABLE_BYTES, dumps_json, read_bounded, read_json, write_atomic
 
 __all__ = [
     "xyzabc_to_matrix", "matrix_to_xyzabc", "quaternion_to_matrix", "matrix_to_quaternion",
@@ -151,8 +152,8 @@ class WfsData:
 
 
 def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_text(encoding="utf-8-sig")  # a UTF-8 BOM (Excel, Notepad) is not data
+    try:  # bounded: /dev/zero or a huge file is refused, not read whole (fileio.MAX_TABLE_BYTES)
+        return read_bounded(path, what, MAX_TABLE_BYTES).decode("utf-8-sig")  # a UTF-8 BOM (Excel) is not data
     except FileNotFoundError:
         raise ConfigError(f"{what} {path}: not found") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -611,10 +612,12 @@ def easy_handeye_yaml(Z: np.ndarray, robot_base_frame: str = "base_link", robot_
     return "\n".join(lines) + "\n"
 
 
-def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
+def write_bundle(folder, files: dict, overwrite: bool = True, drop: tuple = ()) -> dict:
     """Write {name: text | bytes} into ``folder`` all or none: the files go into a
     temporary sibling folder first, which then replaces ``folder`` (existing files
-    in ``folder`` not in ``files`` are kept). Returns {name: Path}."""
+    in ``folder`` not in ``files`` are kept, except those named in ``drop``: e.g. the
+    easy_handeye.yaml of an earlier run beside a calibration that failed its check).
+    Returns {name: Path}."""
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     if not folder.name:  # ".", "..", "/": swap and rename need the folder's own name
@@ -625,15 +628,16 @@ def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
     try:
         if folder.exists():
             for p in folder.iterdir():
-                if p.name not in files and p.is_file():
+                if p.name not in files and p.name not in drop and p.is_file():
                     shutil.copy2(p, tmp / p.name)
         for name, data in files.items():
             write_atomic(tmp / name, data)
         old = None
-        if folder.exists():
-            old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
-            os.replace(folder, old)
-        os.replace(tmp, folder)
+        with committing():  # the swap completes whatever signal arrives meanwhile
+            if folder.exists():
+                old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
+                os.replace(folder, old)
+            os.replace(tmp, folder)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:

@@ -50,6 +50,7 @@ from pathlib import Path
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError, PoseRangeError
+from .plausibility import check_repeatability
 from ..fileio import read_toml
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 from .formats import xyzabc_to_matrix
@@ -245,7 +246,9 @@ def load_robot(spec: str | Path | None = None) -> RobotModel:
         if not path.exists():
             raise ConfigError(f"robot: {key!r} is neither a built-in robot ({', '.join(ROBOTS)}) nor an existing "
                               "TOML file")
-    return robot_from_dict(read_toml(path, "robot file"), where=path.name)
+    robot = robot_from_dict(read_toml(path, "robot file"), where=path.name)
+    check_repeatability(robot.repeatability_mm, path.name)  # a robot file's value; simulations may go lower
+    return robot
 
 
 def kr10_r1100_sixx() -> RobotModel:

@@ -40,6 +40,8 @@ from . import formats
 from .joint_design import candidate_information, design_joint_poses
 from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
+from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
+                           check_wfs_values, job_memory_bytes, pose_file_kind)
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, std_dict
 
@@ -60,10 +62,13 @@ def load_design_lens(design: LensSpec, bench: Bench | None = None) -> tuple[Lens
     return r.lens, r.bench_or(bench)
 
 
-def bench_for_measurements(bench: Bench, wfs: formats.WfsData) -> Bench:
+def bench_for_measurements(bench: Bench, wfs: formats.WfsData, wfs_header: str = "file") -> Bench:
     """The bench with the WFS file's Zernike order, pupil and wavelength (the file
-    describes the instrument's settings; absent header values keep the bench's)."""
-    h = wfs.header
+    describes the instrument's settings; absent header values keep the bench's).
+    wfs_header: "file" (the file's header values win), "bench" (they are ignored) or
+    "error" (a header value that contradicts the bench is a ConfigError naming both;
+    ``plausibility.check_wfs_header``)."""
+    h = check_wfs_header(bench, wfs.header, wfs.source or "WFS file", wfs_header)
     sensor = {"zernike_order": int(wfs.order)}
     if "pupil_radius_mm" in h:
         sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])
@@ -279,7 +284,8 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
 # ----------------------------------------------------------------------------- estimate
 
 
-def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
+def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None,
+             pose_id: str | None = None, wfs_header: str = "error") -> dict:
     """One lens pose with its covariance from one WFS measurement.
 
     Parameters
@@ -314,7 +320,8 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         if str(pose_id) not in wfs.ids:
             raise ConfigError(f"{wfs.source}: field pose: no pose id {pose_id!r} (ids: {', '.join(wfs.ids[:10])}...)")
         k = wfs.ids.index(str(pose_id))
-    b = bench_for_measurements(bench, wfs)
+    check_wfs_values(wfs.zernike[k:k + 1], wfs.source or "WFS file", wfs.rows[k:k + 1])
+    b = bench_for_measurements(bench, wfs, wfs_header)
     model = ForwardModel(b, lens)
     z = zernike_for_model(wfs.zernike[k], model)[0]
     est, reason = estimate_one(model, z, [None])
@@ -325,13 +332,21 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
 
 
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
-                  robot: RobotModel | str | None = None) -> SessionData:
+                  robot: RobotModel | str | None = None, wfs_header: str = "error") -> SessionData:
     """Read and match a session's files by pose id (ids in one file only are reported in
-    ``rejected``; fewer than 3 matches is a ConfigError naming both files)."""
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files). Implausible
+    inputs are refused first (``plausibility``): an all-zero or constant WFS file, header
+    values that contradict the bench (wfs_header: "error", "file" or "bench"), flange poses
+    beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     wfs = _as_table(measurements, formats.read_wfs)
     poses = _as_table(robot_poses, formats.read_robot_poses)
+    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
+    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
+    check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
+    units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
+    check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:
@@ -345,8 +360,10 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    b = bench_for_measurements(bench, wfs)
+    b = bench_for_measurements(bench, wfs, wfs_header)
     model = ForwardModel(b, lens)
+    check_job_memory(job_memory_bytes(len(common), len(model.modes), model.pupil.n_lenslets),
+                     f"calibrating {len(common)} poses", f"{poses.source or 'robot poses'}")
     A = poses.T[[poses.ids.index(i) for i in common]]
     z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
     return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
@@ -357,7 +374,7 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
               robot_poses: str | PathLike[str] | formats.PoseTable, *, bench: Bench | None = None,
               robot: RobotModel | str | None = None, method: str = "joint",
               tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
-              progress: Callable[[int, int], None] | None = None) -> CalibrationResult:
+              progress: Callable[[int, int], None] | None = None, wfs_header: str = "error") -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     Parameters
@@ -381,13 +398,18 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     outlier_alpha : float
         Significance of the chi-square outlier test per pose.
     progress : callable, optional
-        Called (done, total) after each lens-pose estimate.
+        Called (done, total) after the lens-pose estimates.
+    wfs_header : str
+        "error" (a WFS header value that contradicts the bench is a ConfigError naming both),
+        "file" (the file's values win) or "bench" (they are ignored); see ``match_session``.
 
     Returns
     -------
     CalibrationResult
         ``X`` = ^E T_O and ``Z`` = ^W T_S (4x4, mm), the hand-eye result with covariances,
-        poses used and rejected, per-pose chi2, the model check's p-value, warnings.
+        poses used and rejected, per-pose chi2, the model check's p-value, warnings; its
+        ``valid`` says whether it passed its chi2 model check (``model_check``): one that
+        did not is not a calibration (``calibration.diagnosis`` names the likely mistake).
 
     Raises
     ------
@@ -396,5 +418,5 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     """
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
-    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, wfs_header=wfs_header)
     return run(data, method, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)

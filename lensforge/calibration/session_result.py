@@ -14,6 +14,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..optics.shack_hartmann import ForwardModel
 from . import formats
+from .model_check import ModelCheck, check_chi2
 from .robot import RobotModel, Scene
 
 __all__ = ["CalibrationResult", "SessionData", "frame_dict", "std_dict", "robust_chi2_threshold", "OUTLIER_ALPHA",
@@ -76,7 +77,11 @@ class CalibrationResult:
     handeye: the final HandEyeResult (cov_X, cov_Z right perturbations, see handeye);
     poses_used: ids in the solve; poses_rejected: [{"pose", "reason"}]; per_pose:
     [{"pose", "handeye_chi2", "estimate_chi2_dof", "outlier"}] of every estimated pose;
-    p_value: of the chi2 model check; warnings; method; robot; bench (as measured)."""
+    p_value: of the chi2 model check; warnings; method; robot; bench (as measured).
+
+    model_check / valid / check_failure: the verdict of ``model_check.check_chi2`` on
+    (chi2, dof): a result that fails it (valid False) is not a calibration; its files()
+    hold the diagnostics but no easy_handeye.yaml."""
 
     X: np.ndarray
     Z: np.ndarray
@@ -95,12 +100,31 @@ class CalibrationResult:
     extra: dict = field(default_factory=dict)
     estimates: tuple = field(default=())  # two-stage: (id, lens pose (6,), cov (6, 6)) of each used pose
 
+    @property
+    def model_check(self) -> ModelCheck:
+        """The chi2 model check of the final fit (``model_check.check_chi2``)."""
+        return check_chi2(self.chi2, self.dof, what=f"{self.method} calibration")
+
+    @property
+    def valid(self) -> bool:
+        """False when the fit fails its model check: then it is not a calibration."""
+        return self.model_check.passed
+
+    @property
+    def check_failure(self) -> str | None:
+        """Why the model check failed (None when it passed)."""
+        mc = self.model_check
+        return None if mc.passed else mc.reason
+
     def to_json(self) -> dict:
-        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected,
-        method, and the method's own keys (``extra``; joint: tolerances, p_value,
-        lens_parameters, ...)."""
+        """The stable --json keys: schema_version, valid, check_failure, Z, X, chi2_dof,
+        poses_used, poses_rejected, method, and the method's own keys (``extra``; joint:
+        tolerances, p_value, lens_parameters, ...; diagnosis: the likely mistake after a
+        failed check)."""
         return {
             "schema_version": SCHEMA_VERSION,
+            "valid": self.valid,
+            "check_failure": self.check_failure,
             "Z": frame_dict(self.Z, self.handeye.cov_Z),
             "X": frame_dict(self.X, self.handeye.cov_X),
             "chi2_dof": float(self.chi2_dof),
@@ -118,6 +142,7 @@ class CalibrationResult:
                                           else None),
                 "observable": bool(self.handeye.observable),
                 "null_directions": list(self.handeye.null_directions),
+                "model_check": self.model_check.to_dict(),
                 "per_pose": list(self.per_pose), "warnings": list(self.warnings),
                 "std_convention": "translation error and rotation-error vector of R_est R_true^T, parent frame "
                                   "(Z: robot base {W}; X: flange {E}); cov (mm, rad)^2"}
@@ -128,6 +153,11 @@ class CalibrationResult:
         lines = [f"lensforge calibration ({self.method}, {self.robot}): {len(self.poses_used)} poses used, "
                  f"{len(self.poses_rejected)} rejected",
                  f"chi2/dof = {self.chi2_dof:.3g} (dof {self.dof}, p = {self.p_value:.3g})"]
+        if not self.valid:
+            lines.insert(0, f"NOT A CALIBRATION: {self.check_failure}; no easy_handeye.yaml is written")
+            dx = self.extra.get("diagnosis")
+            if dx:
+                lines.insert(1, f"likely mistake: {dx['message']}")
         lp = self.extra.get("lens_parameters")
         if lp is not None:
             lines.append(f"as-built lens: {len(lp['theta'])} parameters from {self.extra['tolerances']}, "
@@ -160,12 +190,16 @@ class CalibrationResult:
 
         return png_bytes(plot_calibration_residuals(self))
 
-    def files(self) -> dict:
-        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""
-        return {"calibration.json": formats.dumps_json(self.to_dict()) + "\n",
-                "easy_handeye.yaml": formats.easy_handeye_yaml(self.Z),
-                "summary.txt": self.summary(),
-                "residuals.png": self.residual_plot()}
+    def files(self, accept_failed_check: bool = False) -> dict:
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png;
+        without easy_handeye.yaml when the model check failed (unless ``accept_failed_check``,
+        for research: the JSON still says "valid": false)."""
+        out = {"calibration.json": formats.dumps_json(self.to_dict()) + "\n"}
+        if self.valid or accept_failed_check:
+            out["easy_handeye.yaml"] = formats.easy_handeye_yaml(self.Z)
+        out["summary.txt"] = self.summary()
+        out["residuals.png"] = self.residual_plot()
+        return out
 
 
 OUTLIER_ALPHA = 1e-3  # family-wise false-alarm rate of the outlier test

@@ -29,6 +29,33 @@ def _write_json(path: Path, obj) -> None:
     write_atomic(path, dumps_json(obj))
 
 
+def check_job(design, bench_path, poses: int, calibration: str, workers: int | None, option: str = "--poses",
+              plan=None) -> None:
+    """Refuse, before any work, a study or budget whose poses are out of range
+    (``plausibility.check_poses_count``), that cannot fit in memory (the estimate, per worker
+    process, ``plausibility.job_memory_bytes``), or whose --pose-plan leaves hand-eye directions
+    unobservable (identical poses, one rotation axis), naming them."""
+    import math
+    import os
+
+    from ..calibration.plausibility import check_job_memory, check_plan_motion, check_poses_count, job_memory_bytes
+    from ..calibration.robot import paper_scene
+    from ..optics.lens import resolve_lens
+
+    check_poses_count(poses, option)
+    r = resolve_lens(design)
+    bench = r.bench_or(load_bench(bench_path) if bench_path else None)
+    n_lenslets = math.pi * bench.sensor.pupil_radius_mm ** 2 / bench.sensor.pitch_mm ** 2
+    order = bench.sensor.zernike_order
+    procs = max(1, os.cpu_count() or 1) if workers is None else max(1, workers)
+    per = job_memory_bytes(poses, (order + 1) * (order + 2) // 2, int(n_lenslets) + 1,
+                           n_params=30 if calibration == "joint" else 0)
+    check_job_memory(per * procs, f"a {calibration} calibration of {poses} poses on {procs} worker(s)", option)
+    if plan is not None:
+        scene = paper_scene(bench.placement.distance_mm)
+        check_plan_motion(plan, scene.T_SO_nominal, scene.X, "--pose-plan")
+
+
 def _check_sizes(seed: int, lenses: int, workers: int | None) -> None:
     check_seed(seed)
     if lenses < 1:
@@ -82,6 +109,7 @@ def study_cmd(
     if plan is not None:
         poses = len(plan)
     _check_sizes(seed, lenses, workers)
+    check_job(design, bench, poses, calibration, workers, "--pose-plan" if plan is not None else "--poses", plan)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = load_bench(bench) if bench else None
     check_output(out, folder=True, need_mb=5 + lenses * 2e-3)
@@ -161,6 +189,7 @@ def budget_cmd(
     if tol is None:
         raise ConfigError("--tolerances: 'none' leaves nothing to budget; give a tolerance TOML or 'default'")
     _check_sizes(seed, lenses, workers)
+    check_job(design, bench, poses, calibration, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = load_bench(bench) if bench else None
     check_output(out, folder=True, need_mb=10)

@@ -321,6 +321,11 @@ def _step_bytes(shape: TopoDS_Shape, name: str = "lens", file_name: str = "lens.
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "lens.step"
             if w.Write(str(p)) != IFSelect_RetDone:
+                import shutil
+
+                if shutil.disk_usage(tmp).free < 64 * 2**20:  # OCC says only "failed": name the likely cause
+                    raise LensforgeError(f"step: the temporary folder {tempfile.gettempdir()} (TMPDIR) is full; free "
+                                         "space there or set TMPDIR to a folder with room")
                 raise LensforgeError("step: OCC could not write the STEP file")
             return p.read_bytes()
 

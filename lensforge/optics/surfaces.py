@@ -29,6 +29,7 @@ import numpy as np
 from numpy.polynomial import polynomial as P
 
 from ..errors import ConfigError
+from ..input_checks import MAX_SAG_COEFFICIENTS
 from .zernike import zernike_monomials
 
 __all__ = [
@@ -122,6 +123,9 @@ class CanonicalSurface:
 
 
 def _as_coeffs(name: str, value, length: int | None = None) -> np.ndarray:
+    length = MAX_SAG_COEFFICIENTS if length is None else length
+    if isinstance(value, (list, tuple)) and len(value) > length:  # before converting a million entries
+        raise ConfigError(f"{name}: at most {length} coefficients allowed, got {len(value)}")
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.ndim != 1:
         raise ConfigError(f"{name}: expected a list of numbers, got shape {arr.shape}")

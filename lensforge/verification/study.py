@@ -193,6 +193,8 @@ def _calibration_record(res, rec, X_true, Z_true) -> dict:
            "Z_sigma_mm": float(np.sqrt(np.trace(res.handeye.cov_Z[:3, :3]))),
            "Z_sigma_deg": math.degrees(float(np.sqrt(np.trace(res.handeye.cov_Z[3:, 3:])))),
            "fallback": res.extra.get("fallback", {}).get("reason", "")}
+    if not res.valid:  # not a calibration (``calibrate`` exits 3): the trial fails; its errors stay for diagnosis
+        out.update(ok=False, failure=f"model check failed: {res.check_failure}")
     if res.estimates:  # two-stage: the per-pose estimation bias against the true lens poses
         index = {i: k for k, i in enumerate(np.array(rec.data.ids))}
         lit_idx = np.flatnonzero(rec.lit)
@@ -218,6 +220,10 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     one pipeline ``calibration.pipeline`` that ``lensforge calibrate`` runs: always the
     two-stage method, and with calibration "joint" also the joint method on the same data,
     started from the two-stage solution (record under "joint").
+
+    A calibration that fails its chi2 model check (``CalibrationResult.valid`` False: what
+    ``calibrate`` refuses with exit 3) fails the trial ("model check failed: ..."); its
+    errors stay in the record.
 
     Keys: ok, failure ("" or why), rot_err_deg / trans_err_mm (Z = ^W T_S error),
     x_rot_err_deg / x_trans_err_mm (grasp X error), bias (6: mean estimate - truth,
