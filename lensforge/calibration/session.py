@@ -46,7 +46,8 @@ from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vec
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
-from . import formats
+from . import formats, thorlabs
+from .measurement import Measurement, canonical_ids, referenced_session, slope_inputs, spot_bench
 from .handeye import solve_handeye
 from .joint_design import candidate_information, design_joint_poses
 from ..asbuilt.lens_params import parameterise
@@ -80,6 +81,8 @@ def bench_for_measurements(bench: Bench, wfs: formats.WfsData) -> Bench:
     """The bench with the WFS file's Zernike order, pupil and wavelength (the file
     describes the instrument's settings; absent header values keep the bench's)."""
     h = wfs.header
+    if h.get("instrument_file"):  # an instrument's own file: its settings must agree with the bench
+        thorlabs.check_against_bench(h, bench, wfs.source)
     sensor = {"zernike_order": int(wfs.order)}
     if "pupil_radius_mm" in h:
         sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])
@@ -317,13 +320,19 @@ def _solve(A, B, C, noise):
 
 
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
-                  robot: RobotModel | str | None = None) -> SessionData:
+                  robot: RobotModel | str | None = None, pose_pattern: str | None = None,
+                  reference_pose: str | None = None) -> SessionData:
     """Read and match a session's files by pose id (ids in one file only are reported in
-    ``rejected``; fewer than 3 matches is a ConfigError naming both files)."""
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files). measurements:
+    a WFS file, or a folder/glob of per-pose instrument files (``formats.read_wfs``;
+    pose_pattern: the file-name pattern of their ids); integer ids match as integers;
+    reference_pose: the pose of a user reference the measurements are relative to
+    (default: the files' own ``reference_pose``; ``measurement.referenced_session``)."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
-    wfs = _as_table(measurements, formats.read_wfs)
+    wfs = _as_table(measurements, lambda p: formats.read_wfs(p, pose_pattern=pose_pattern))
     poses = _as_table(robot_poses, formats.read_robot_poses)
+    poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:
@@ -337,19 +346,29 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    b = bench_for_measurements(bench, wfs)
-    model = ForwardModel(b, lens)
     A = poses.T[[poses.ids.index(i) for i in common]]
-    z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    meas = None
+    if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
+        b = spot_bench(bench, wfs)
+        meas, z, _ = slope_inputs(wfs, ForwardModel(b, lens), rows=[wfs.ids.index(i) for i in common])
+        model = meas.model(ForwardModel(b, lens))
+    else:
+        b = bench_for_measurements(bench, wfs)
+        model = ForwardModel(b, lens)
+        z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    if ref is not None:
+        meas = Measurement(meas.kind if meas else "zernike", meas.lenslets if meas else None,
+                           meas.dropped if meas else (), reference=common.index(ref))
     return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
-                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected))
+                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected), measurement=meas)
 
 
 def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsData,
               robot_poses: str | PathLike[str] | formats.PoseTable, *, bench: Bench | None = None,
               robot: RobotModel | str | None = None, method: str = "joint",
               tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
-              progress: Callable[[int, int], None] | None = None) -> CalibrationResult:
+              progress: Callable[[int, int], None] | None = None, pose_pattern: str | None = None,
+              reference_pose: str | None = None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
@@ -364,7 +383,10 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     """
     if method not in CALIBRATION_METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
-    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, pose_pattern=pose_pattern,
+                         reference_pose=reference_pose)
+    if data.measurement is not None and data.measurement.reference is not None:  # relative to a user reference
+        return referenced_session(data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
     return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
 
 

@@ -158,9 +158,13 @@ class CalibrationResult:
         return png_bytes(plot_calibration_residuals(self))
 
     def files(self) -> dict:
-        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, the ROS 2 launch file
+        (``ros2.static_transform_launch``: Z and X), summary.txt, residuals.png."""
+        from .ros2 import LAUNCH_FILE_NAME, static_transform_launch
+
         return {"calibration.json": formats.dumps_json(self.to_dict()) + "\n",
                 "easy_handeye.yaml": formats.easy_handeye_yaml(self.Z),
+                LAUNCH_FILE_NAME: static_transform_launch(self.Z, self.X),
                 "summary.txt": self.summary(),
                 "residuals.png": self.residual_plot()}
 
@@ -184,3 +188,4 @@ class SessionData:
     robot: RobotModel
     scene: Scene
     rejected: tuple = ()
+    measurement: object = None  # calibration.measurement.Measurement of z (None: Zernikes; model is its model)

@@ -17,11 +17,19 @@ from ._common import ROBOT_HELP, bench_arg, emit_json, info
 def calibrate_cmd(
     design: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
     measurements: Path = typer.Option(..., "--measurements", "-m",
-                                      help="WFS Zernike export: CSV pose,Z1..ZK (um, Thorlabs order) or lensforge JSON"),
+                                      help="WFS measurements: CSV pose,Z1..ZK (um, Thorlabs order), lensforge JSON, "
+                                           "or a folder / quoted glob of per-pose Thorlabs WFS exports or SDK "
+                                           "spot fields (pose id = last integer in the file name)"),
     robot_poses: Path = typer.Option(..., "--robot-poses", "-r",
                                      help="flange poses: CSV pose,X,Y,Z,A,B,C (mm/deg), CSV pose,x,y,z,qw,qx,qy,qz "
                                           "with '# units: m|mm', or JSON 4x4"),
     robot: Optional[str] = typer.Option(None, "--robot", help=ROBOT_HELP),
+    pose_pattern: Optional[str] = typer.Option(None, "--pose-pattern",
+                                               help="regular expression whose first group is the pose id in a "
+                                                    "measurement file's name (default: its last integer)"),
+    reference_pose: Optional[str] = typer.Option(None, "--reference-pose",
+                                                 help="the pose id of the user reference the measurements are "
+                                                      "relative to (default: the files' reference_pose, if any)"),
     method: str = typer.Option("joint", "--method", help="calibration method (calibration.session.CALIBRATION_METHODS): "
                                                          "joint (default; estimates the as-built lens with X and Z) "
                                                          "or two-stage"),
@@ -38,13 +46,15 @@ def calibrate_cmd(
 
     X = lens in the flange, Z = sensor in the robot base (mm, deg, 1-sigma).
 
-    Writes calibration.json, easy_handeye.yaml (ROS), summary.txt and residuals.png."""
+    Writes calibration.json, easy_handeye.yaml (ROS), lensforge_calibration.launch.py (ROS 2
+    static transforms of Z and X), summary.txt and residuals.png."""
     with progress_bar(None, "estimating lens poses", enabled=not (no_progress or json_out)) as bar:
         from ..calibration.formats import write_bundle
         from ..calibration.session import calibrate
 
         res = calibrate(design, measurements, robot_poses, bench=bench_arg(bench), robot=robot, method=method,
-                        tolerances=tolerances, progress=bar.update)
+                        tolerances=tolerances, progress=bar.update, pose_pattern=pose_pattern,
+                        reference_pose=reference_pose)
     paths = write_bundle(out, res.files())
     info(res.summary().rstrip())
     info("files: " + ", ".join(str(v) for v in paths.values()))

@@ -21,10 +21,14 @@ def simulate_session_cmd(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+    instrument_files: bool = typer.Option(False, "--instrument-files",
+                                          help="also write thorlabs/ (WFS software exports, one per pose) and "
+                                               "spot_fields/ (SDK spot deviations + MLA data, NPZ)"),
 ) -> None:
     """Simulate a bench session's files to rehearse calibrate.
 
-    Writes robot_poses.csv, wfs_zernike.csv and truth.json."""
+    Writes robot_poses.csv, wfs_zernike.csv and truth.json (with --instrument-files also the
+    folders thorlabs/ and spot_fields/, each a valid --measurements)."""
     from ..calibration.formats import write_bundle
     from ..calibration.session import frame_dict
 
@@ -33,10 +37,11 @@ def simulate_session_cmd(
     check_seed(seed)
     tol = None if tolerances.lower() == "none" else tolerances
     s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n)
-    paths = write_bundle(out, s.files())
+    paths = write_bundle(out, s.files(instrument=instrument_files))
     info(f"session: {len(s.ids)} poses, {len(s.unlit)} unlit on the as-built lens"
          + (f" ({', '.join(s.unlit)})" if s.unlit else ""))
-    info("files: " + ", ".join(str(v) for v in paths.values()))
+    info("files: " + ", ".join(str(v) for k, v in paths.items() if "/" not in k)
+         + (f", {out / 'thorlabs'}/, {out / 'spot_fields'}/" if instrument_files else ""))
     info(f"next: lensforge calibrate {design} --measurements {paths['wfs_zernike.csv']} "
          f"--robot-poses {paths['robot_poses.csv']}")
     if json_out:
