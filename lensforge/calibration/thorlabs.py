@@ -614,7 +614,7 @@ def spot_field_csv(deviation_px, *, focal_length_um: float, lenslet_pitch_um: fl
         for ix in range(nx):
             if only_finite and not (np.isfinite(dx[iy, ix]) and np.isfinite(dy[iy, ix])):
                 continue
-            lines.append(f"{iy},{ix},{dx[iy, ix]!r},{dy[iy, ix]!r}")
+            lines.append(f"{iy},{ix},{float(dx[iy, ix])!r},{float(dy[iy, ix])!r}")
     # the grid's extent must survive even when its far corner has no spot
     if only_finite and not (np.isfinite(dx[-1, -1]) and np.isfinite(dy[-1, -1])):
         lines.append(f"{ny - 1},{nx - 1},nan,nan")
