@@ -191,3 +191,29 @@ def test_same_session_same_x_and_z_through_csv_and_export_folder(session):
         np.testing.assert_allclose(a[:3, 3], b[:3, 3], rtol=0, atol=1e-6)  # mm
     r_two = calibrate(LENS, paths["wfs_zernike.csv"], paths["robot_poses.csv"], robot=p.robot, method="two-stage")
     np.testing.assert_allclose(r_glob.Z, r_two.Z, rtol=0, atol=1e-6)
+
+
+def test_cli_calibrates_a_renamed_export_folder_with_a_pose_pattern(session, tmp_path, monkeypatch, capsys):
+    """`calibrate --measurements FOLDER --pose-pattern` on exports named by another scheme;
+    the bundle holds the ROS 2 launch file; a contradiction is one error line, exit 2."""
+    import json
+
+    from conftest import run_cli_inprocess
+
+    p, s, folder, paths = session
+    src = tmp_path / "wfs"
+    src.mkdir()
+    for f in (folder / "thorlabs").iterdir():
+        i = int(f.stem.split("_")[1])
+        (src / f"P{i}_2026-12-01_13.csv").write_bytes(f.read_bytes())  # last integer is not the id
+    code, out, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "--measurements", src,
+                                       "--robot-poses", paths["robot_poses.csv"], "--pose-pattern", r"P(\d+)_",
+                                       "--method", "two-stage", "-o", tmp_path / "out", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert len(d["poses_used"]) == len(s.wfs_ids)
+    launch = (tmp_path / "out" / "lensforge_calibration.launch.py").read_text()
+    assert "static_transform_publisher" in launch and "wfs_sensor" in launch
+    code, out, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "--measurements", src,
+                                       "--robot-poses", paths["robot_poses.csv"], "-o", tmp_path / "out2")
+    assert code == 2 and err.strip().splitlines()[-1].startswith("error: ") and "pose id 13 also in" in err
