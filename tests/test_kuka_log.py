@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lensforge.calibration.formats import matrix_to_xyzabc, read_robot_poses, xyzabc_to_matrix
-from lensforge.calibration.kuka_log import assign_by_time, parse_e6pos, read_kuka_log
+from lensforge.calibration.kuka_log import assign_by_time, parse_e6pos
 from lensforge.errors import ConfigError
 
 POSES = np.array([[512.25, -480.5, 998.0, -80.0, -89.5, 80.0], [500.0, -500.0, 1000.0, 10.0, 20.0, -30.0],
@@ -21,7 +21,9 @@ def test_columns_any_order_with_status_and_turn(tmp_path):
     t = read_robot_poses(p)  # sniffed as a KUKA log (S, T columns)
     assert t.ids == ("01", "02", "03")
     np.testing.assert_allclose(t.T, xyzabc_to_matrix(POSES), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(t.status_turn, [[6, 27]] * 3)
+    from lensforge.calibration.kuka_log import read_kuka_log
+
+    np.testing.assert_allclose(read_kuka_log(p)["status_turn"], [[6, 27]] * 3)
 
 
 def test_e6pos_text_column(tmp_path):
@@ -32,12 +34,12 @@ def test_e6pos_text_column(tmp_path):
     for i, v in enumerate(POSES, start=1):
         rows.append(f'{i},"{{E6POS: X {v[0]}, Y {v[1]}, Z {v[2]}, A {v[3]}, B {v[4]}, C {v[5]}, S 2, T 35, E1 0.0}}"')
     p.write_text("\n".join(rows))
-    t = read_kuka_log(p)
+    t = read_robot_poses(p, 'kuka_log')
     np.testing.assert_allclose(matrix_to_xyzabc(t.T)[:, :3], POSES[:, :3], atol=1e-9)
     np.testing.assert_allclose(t.T, xyzabc_to_matrix(POSES), atol=1e-12)
     p.write_text('pose,POS_ACT\n1,"{E6POS: X 1, Y 2, Z 3, A 0, B 0, S 2}"\n')
     with pytest.raises(ConfigError, match="row 2, field POS_ACT: C missing"):
-        read_kuka_log(p)
+        read_robot_poses(p, 'kuka_log')
 
 
 def test_times_match_the_wfs_files(tmp_path):
@@ -61,16 +63,16 @@ def test_log_errors(tmp_path):
     p = tmp_path / "log.csv"
     p.write_text("# tool: tool_data[3]\npose,X,Y,Z,A,B,C\n1,0,0,0,0,0,0\n")
     with pytest.raises(ConfigError, match=r"row 1, field tool.*\$TOOL = \$NULLFRAME"):
-        read_kuka_log(p)
+        read_robot_poses(p, 'kuka_log')
     p.write_text("pose;X;Y;Z;A;B;C\n1;0,5;0;0;0;0;0\n")
     with pytest.raises(ConfigError, match="row 2, field X: '0,5' uses a decimal comma"):
-        read_kuka_log(p)
+        read_robot_poses(p, 'kuka_log')
     p.write_text("X,Y,Z,A,B,C\n0,0,0,0,0,0\n")
     with pytest.raises(ConfigError, match="no 'pose' or 'time' column"):
-        read_kuka_log(p)
+        read_robot_poses(p, 'kuka_log')
     p.write_text("pose,X,Y,Z,A,B,C\n1,0,0,0,0,400,0\n")
-    with pytest.raises(ConfigError, match="row 2, field B: beyond 360 deg"):
-        read_kuka_log(p)
+    with pytest.raises(ConfigError, match="row 2, field B: 400 deg is beyond the plausible 360 deg"):
+        read_robot_poses(p, 'kuka_log')
     p.write_text("pose,X,Y,Z,A,B,C,S,T\n1,0,0,0,0,0,0,2,3\n1,0,0,0,0,0,0,2,3\n")
     with pytest.raises(ConfigError, match="duplicate pose id '1'"):
         read_robot_poses(p)

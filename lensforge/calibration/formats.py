@@ -64,12 +64,16 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
 from ..fileio import dumps_json, read_json, write_atomic
+
+if TYPE_CHECKING:
+    from .thorlabs import SpotFields
 
 __all__ = [
     "xyzabc_to_matrix", "matrix_to_xyzabc", "quaternion_to_matrix", "matrix_to_quaternion",
@@ -136,12 +140,14 @@ def matrix_to_quaternion(T) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class PoseTable:
     """Poses by id: ids (n,) strings, T (n, 4, 4) in mm, source (file name), rows (n,)
-    line numbers in the source (for messages)."""
+    line numbers in the source (for messages); times: (n,) s of a robot log matched to the
+    WFS files by time (``kuka_log``), else None."""
 
     ids: tuple
     T: np.ndarray
     source: str = ""
     rows: tuple = ()
+    times: np.ndarray | None = None  # (n,) record times (s) of a log without ids (kuka_log)
 
 
 @dataclass(frozen=True, eq=False)
@@ -350,7 +356,10 @@ def read_json_4x4(path) -> PoseTable:
 def _read_kuka_log(path) -> PoseTable:
     from .kuka_log import read_kuka_log
 
-    return read_kuka_log(path)
+    path = Path(path)
+    d = read_kuka_log(path)
+    _check_range(path, d["xyzabc"][:, 3:], d["rows"], ["A", "B", "C"], MAX_ANGLE_DEG, "deg")
+    return PoseTable(d["ids"], xyzabc_to_matrix(d["xyzabc"]), str(path), d["rows"], times=d["times"])
 
 
 POSE_READERS = {"xyzabc_csv": read_xyzabc_csv, "quaternion_csv": read_quaternion_csv, "json_4x4": read_json_4x4,
@@ -489,7 +498,8 @@ def read_wfs_json(path) -> WfsData:
 def _read_thorlabs_exports(path, pattern=None):
     from .thorlabs import read_export_folder
 
-    return read_export_folder(path, pattern)
+    d = read_export_folder(path, pattern)
+    return WfsData(d["ids"], d["zernike"], d["order"], d["header"], d["source"], d["rows"])
 
 
 def _read_spot_fields(path, pattern=None):
@@ -524,7 +534,8 @@ def _sniff_wfs_format(path: Path) -> str:
     return "wfs_csv"
 
 
-def read_wfs(path: str | os.PathLike[str], fmt: str | None = None, pose_pattern: str | None = None):
+def read_wfs(path: str | os.PathLike[str], fmt: str | None = None,
+             pose_pattern: str | None = None) -> WfsData | SpotFields:
     """WFS measurements by id; fmt a WFS_READERS name or None to detect it: a folder or a
     glob of Thorlabs WFS exports (``*** ... ***`` sections) or of spot fields (.npz, or a CSV
     with an ``iy,ix,dx_px,dy_px`` header), one file per pose with the pose id from the

@@ -33,10 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from .formats import MAX_ANGLE_DEG, PoseTable, xyzabc_to_matrix
 from .thorlabs import read_text_any
 
-__all__ = ["read_kuka_log", "parse_e6pos", "assign_by_time", "KukaLog", "MAX_DT_S"]
+__all__ = ["read_kuka_log", "parse_e6pos", "assign_by_time", "MAX_DT_S"]
 
 MAX_DT_S = 5.0  # ASSUMPTION: a record within 5 s of a WFS frame belongs to it (the plan settles 2 s per pose)
 _FIELD = re.compile(r"\b([A-Z][A-Z0-9]?)\s+([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)")
@@ -52,11 +51,6 @@ def parse_e6pos(text: str) -> dict:
     return {k: float(v) for k, v in _FIELD.findall(body.upper())}
 
 
-class KukaLog(PoseTable):
-    """PoseTable of a log (ids, T (n, 4, 4) mm, source, rows); times: (n,) seconds or None;
-    status_turn: (n, 2) S and T where logged (NaN otherwise)."""
-
-
 def _time(path, no, text):
     t = text.strip()
     try:
@@ -69,10 +63,12 @@ def _time(path, no, text):
         raise ConfigError(f"{path}: row {no}, field time: {t!r} is neither seconds nor an ISO 8601 time") from None
 
 
-def read_kuka_log(path) -> PoseTable:
-    """Flange poses from a ``$POS_ACT`` log (module docstring). Returns a PoseTable whose
-    ``times`` attribute holds the record times (s) when the log has a time column and no
-    pose column (ids are then "t<row>" until ``assign_by_time``)."""
+def read_kuka_log(path) -> dict:
+    """Records of a ``$POS_ACT`` log (module docstring): {"ids": (n,), "xyzabc": (n, 6) mm and
+    deg, "rows": line numbers, "times": (n,) s when the log has a time column and no pose
+    column (ids are then "t<row>" until ``assign_by_time``) else None, "status_turn": (n, 2)
+    S and T (NaN where not logged)}. ``formats.read_robot_poses`` (format ``kuka_log``)
+    turns it into a PoseTable."""
     path = Path(path)
     text = read_text_any(path, "robot poses file")
     lines = [(no, ln) for no, ln in enumerate(text.split("\n"), start=1) if ln.strip()]
@@ -136,9 +132,6 @@ def read_kuka_log(path) -> PoseTable:
         x = [v[c] for c in "XYZABC"]
         if not all(math.isfinite(a) for a in x):
             raise ConfigError(f"{path}: row {no}: a pose value is not finite")
-        bad = [c for c, a in zip("ABC", x[3:]) if abs(a) > MAX_ANGLE_DEG]
-        if bad:
-            raise ConfigError(f"{path}: row {no}, field {bad[0]}: beyond {MAX_ANGLE_DEG:g} deg; A, B, C are degrees")
         vals.append(x)
         st.append([v.get("S", np.nan), v.get("T", np.nan)])
         nos.append(no)
@@ -155,15 +148,16 @@ def read_kuka_log(path) -> PoseTable:
         if i in seen:
             raise ConfigError(f"{path}: row {no}, field pose: duplicate pose id {i!r} (first at row {seen[i]})")
         seen[i] = no
-    out = KukaLog(tuple(ids), xyzabc_to_matrix(np.array(vals)), str(path), tuple(nos))
-    object.__setattr__(out, "times", np.array(times) if (times and id_col is None) else None)
-    object.__setattr__(out, "status_turn", np.array(st))
-    return out
+    return {"ids": tuple(ids), "xyzabc": np.array(vals), "rows": tuple(nos),
+            "times": np.array(times) if (times and id_col is None) else None, "status_turn": np.array(st)}
 
 
-def assign_by_time(log: PoseTable, wfs_times: dict, max_dt_s: float = MAX_DT_S) -> PoseTable:
-    """The log's records renamed by the WFS pose ids: for each id (time in s) the nearest
-    record within max_dt_s. ConfigError when a record would serve two ids or none is near."""
+def assign_by_time(log, wfs_times: dict, max_dt_s: float = MAX_DT_S):
+    """The log's PoseTable (``formats.PoseTable`` with times) renamed by the WFS pose ids: for
+    each id (time in s) the nearest record within max_dt_s. ConfigError when a record would
+    serve two ids or none is near."""
+    from dataclasses import replace
+
     t = getattr(log, "times", None)
     if t is None:
         raise ConfigError(f"{log.source}: no time column to match the WFS files' times")
@@ -181,4 +175,4 @@ def assign_by_time(log: PoseTable, wfs_times: dict, max_dt_s: float = MAX_DT_S) 
         idx.append(k)
     if not idx:
         raise ConfigError(f"{log.source}: field time: no record within {max_dt_s:g} s of any WFS file's time")
-    return PoseTable(tuple(ids), log.T[idx], log.source, tuple(log.rows[k] for k in idx))
+    return replace(log, ids=tuple(ids), T=log.T[idx], rows=tuple(log.rows[k] for k in idx), times=None)

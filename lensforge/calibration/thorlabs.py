@@ -337,12 +337,12 @@ def _ids_of(files, pattern):
     return ids
 
 
-def read_export_folder(spec, pattern: str | None = None):
-    """WfsData (``formats.WfsData``) of a folder or glob of WFS exports, one per pose,
-    the pose id from each file name (``pose_id_from_name``). Every file must share the
-    fit order, wavelength and pupil; the tilt check (``check_tilt_not_cancelled``) runs."""
-    from .formats import WfsData
-
+def read_export_folder(spec, pattern: str | None = None) -> dict:
+    """The fields of a ``formats.WfsData`` (ids, zernike (n, K) Thorlabs order, order, header,
+    source, rows) of a folder or glob of WFS exports, one per pose, the pose id from each
+    file name (``pose_id_from_name``). Every file must share the fit order, wavelength and
+    pupil; the tilt check (``check_tilt_not_cancelled``) runs. ``formats.read_wfs`` (format
+    ``thorlabs_export``) returns it as WfsData."""
     files = expand_measurements(spec, (".csv", ".txt"))
     if not files:
         raise ConfigError(f"{spec}: not a folder or a glob of WFS export files")
@@ -367,7 +367,8 @@ def read_export_folder(spec, pattern: str | None = None):
         header["reference"] = "user"
     check_tilt_not_cancelled(z[:, 1:3], str(spec), "Zernike tilt modes (Thorlabs 2, 3)",
                              any(r["header"].get("tilt_cancelled") for r in recs))
-    return WfsData(tuple(ids), z, order, header, str(spec), tuple(range(1, len(ids) + 1)))
+    return {"ids": tuple(ids), "zernike": z, "order": order, "header": header, "source": str(spec),
+            "rows": tuple(range(1, len(ids) + 1))}
 
 
 def check_tilt_not_cancelled(tilt, source: str, what: str, flagged: bool = False, zero: float = TILT_ZERO_UM) -> None:
