@@ -217,3 +217,31 @@ def test_cli_calibrates_a_renamed_export_folder_with_a_pose_pattern(session, tmp
     code, out, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "--measurements", src,
                                        "--robot-poses", paths["robot_poses.csv"], "-o", tmp_path / "out2")
     assert code == 2 and err.strip().splitlines()[-1].startswith("error: ") and "pose id 13 also in" in err
+
+
+def test_user_reference_is_read_from_the_export_header(tmp_path):
+    for i in range(3):
+        text = _export(_z(i)).replace("Reference: internal", "Reference: user\r\nReference pose: 02")
+        (tmp_path / f"pose_{i + 1}.csv").write_bytes(text.encode("cp1252"))
+    w = read_wfs(tmp_path)
+    assert w.header["reference"] == "user" and w.header["reference_pose"] == "02"
+    from lensforge.calibration.formats import PoseTable
+    from lensforge.calibration.measurement import canonical_ids
+
+    poses = PoseTable(("1", "2", "3", "4"), np.tile(np.eye(4), (4, 1, 1)), "robot.csv")
+    _, w2, ref = canonical_ids(poses, w)
+    assert ref == "2" and w2.ids == w.ids  # the reference pose has its own (zero) file here
+
+
+def test_simulate_session_cli_writes_the_instrument_folders(tmp_path, monkeypatch, capsys):
+    from conftest import run_cli_inprocess
+
+    code, out, err = run_cli_inprocess(monkeypatch, capsys, "simulate-session", LENS, "-t", "none", "-n", "6",
+                                       "--instrument-files", "-o", tmp_path / "s")
+    assert code == 0, err
+    w = read_wfs(tmp_path / "s" / "wfs_zernike.csv")
+    t = read_wfs(tmp_path / "s" / "thorlabs")
+    f = read_wfs(tmp_path / "s" / "spot_fields")
+    assert t.ids == w.ids == f.ids
+    np.testing.assert_array_equal(t.zernike, w.zernike)  # repr round trip: the same numbers
+    assert f.slopes.shape[0] == len(w.ids) and np.isfinite(f.slopes).sum() > 0
