@@ -137,6 +137,16 @@ def test_tilt_cancelled_files_are_detected(tmp_path):
         read_wfs(tmp_path)
 
 
+def test_tilt_cancelled_row_per_pose_csv_is_detected(tmp_path):
+    from lensforge.calibration.formats import wfs_csv
+
+    z = np.array([_z(i) for i in range(3)])
+    z[:, 1:3] = 0.0
+    (tmp_path / "w.csv").write_text(wfs_csv(["1", "2", "3"], z))
+    with pytest.raises(ConfigError, match="w.csv: Zernike tilt modes Z2, Z3 are zero in every pose.*OFF"):
+        read_wfs(tmp_path / "w.csv")
+
+
 def test_header_against_bench_names_both_values(tmp_path):
     bench = Bench.default()
     thorlabs.check_against_bench(HEADER, bench, "f")

@@ -460,7 +460,11 @@ def read_wfs_csv(path) -> WfsData:
             raise ConfigError(f"{path}: row {no}: {len(f) - 1} Zernike modes, expected {k} (as in the header)")
     ids, z, nos = _numeric_rows(path, rows, ["pose"] + [f"Z{i}" for i in range(1, k + 1)])
     _check_range(path, z, nos, [f"Z{i}" for i in range(1, k + 1)], MAX_ZERNIKE_UM, "um")
-    return WfsData(tuple(ids), z, order, _wfs_header(path, comments), str(path), tuple(nos))
+    header = _wfs_header(path, comments)
+    from .thorlabs import check_tilt_not_cancelled
+
+    check_tilt_not_cancelled(z[:, 1:3], str(path), "Zernike tilt modes Z2, Z3")
+    return WfsData(tuple(ids), z, order, header, str(path), tuple(nos))
 
 
 def read_wfs_json(path) -> WfsData:
