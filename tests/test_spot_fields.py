@@ -179,3 +179,20 @@ def test_referenced_information_and_fit(session):
     np.testing.assert_allclose(r2.Z, r.Z, rtol=0, atol=1e-6)
     with pytest.raises(ConfigError, match="reference pose '99' has no robot pose"):
         match_session(LENS, wfs, paths["robot_poses.csv"], robot=p.robot, reference_pose="99")
+
+
+def test_referenced_spot_fields_calibrate(session):
+    """Spot fields relative to a user reference at pose 1 (the reference named in the
+    fields): the referenced slope fit finds Z within 3 sigma and writes the whole bundle."""
+    from dataclasses import replace
+
+    p, s, folder, paths = session
+    f = read_wfs(folder / "spot_fields")
+    k = f.ids.index("1")
+    ref = replace(f, slopes=f.slopes - f.slopes[k], header={**f.header, "reference_pose": "1"})
+    r = calibrate(LENS, ref, paths["robot_poses.csv"], robot=p.robot)
+    assert r.method == "joint-referenced" and r.extra["measurement"] == "slopes"
+    e = matrix_to_pose(invert_poses(s.Z) @ r.Z)
+    assert np.all(np.abs(e) <= 3 * np.sqrt(np.diag(r.handeye.cov_Z)))
+    assert 0.8 < r.chi2_dof < 1.2  # ~1570 DOF
+    assert "lensforge_calibration.launch.py" in r.files()
