@@ -166,8 +166,10 @@ class JointCalibrationResult:
 class JointProblem:
     """Residuals and Jacobians of the joint problem (see the module doc)."""
 
-    def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool):
+    def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool,
+                 measurement=None):
         self.bench = bench
+        self.measurement = measurement  # what is measured (calibration.measurement; None: the Zernikes)
         self.param = param
         self.z = z
         self.A = A
@@ -192,6 +194,8 @@ class JointProblem:
         key = np.asarray(theta, float).tobytes()
         if key != self._model_key:
             self._model = ForwardModel(self.bench, self.param.build(theta), validate=False)
+            if self.measurement is not None:
+                self._model = self.measurement.model(self._model)
             self._model_key = key
             if self.Li is None:
                 self.Li = self._model.whitener
@@ -291,7 +295,7 @@ def _inv(S):
 def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
                     theta0=None, theta_prior: bool = True, max_iter: int = 40, tol: float = _STEP_TOL,
                     alpha: float = 1e-3, theta_jacobian0=None,
-                    refresh_ratio: float = _REFRESH_RATIO) -> JointCalibrationResult:
+                    refresh_ratio: float = _REFRESH_RATIO, measurement=None) -> JointCalibrationResult:
     """Joint ML/MAP estimate of X, Z, theta and the robot pose errors (module doc).
 
     bench: the optics bench; param: theta parameterisation; z: (n, m) measured Zernikes
@@ -329,7 +333,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     if used.sum() < 3:
         raise CalibrationError(f"joint calibration: only {int(used.sum())} of {n} poses light the pupil at the "
                                "start; start closer (X0, Z0) or choose poses nearer nominal")
-    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior)
+    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior, measurement)
     n = int(used.sum())
     a = np.zeros((n, 6))
     r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a)

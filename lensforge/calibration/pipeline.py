@@ -41,6 +41,7 @@ from ..errors import CalibrationError, ConfigError, LensforgeError
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
 from ..optics.shack_hartmann import ForwardModel
 from .handeye import solve_handeye
+from .measurement import referenced_session
 from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
 from .session_joint import joint_session
 from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, robust_chi2_threshold
@@ -61,9 +62,15 @@ class TooFewPosesError(CalibrationError):
 
 
 def run(data: SessionData, method: str = "joint", **options) -> CalibrationResult:
-    """Calibrate a matched session with a ``METHODS`` entry (options: the method's keywords)."""
+    """Calibrate a matched session with a ``METHODS`` entry (options: the method's keywords).
+
+    Measurements relative to a user reference (``data.measurement.reference``) are modelled
+    exactly, z = h(x) - h(x_ref), by ``measurement.referenced_session`` whatever the method."""
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
+    if data.measurement is not None and data.measurement.reference is not None:
+        keep = ("outlier_alpha", "progress", "tolerances")
+        return referenced_session(data, **{k: v for k, v in options.items() if k in keep})
     return METHODS[method](data, **options)
 
 

@@ -36,7 +36,8 @@ from ..optics.lens import Lens, LensSpec, resolve_lens
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
-from . import formats
+from . import formats, thorlabs
+from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
 from .joint_design import candidate_information, design_joint_poses
 from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
@@ -69,6 +70,8 @@ def bench_for_measurements(bench: Bench, wfs: formats.WfsData, wfs_header: str =
     "error" (a header value that contradicts the bench is a ConfigError naming both;
     ``plausibility.check_wfs_header``)."""
     h = check_wfs_header(bench, wfs.header, wfs.source or "WFS file", wfs_header)
+    if h.get("instrument_file"):  # an instrument's own file: its settings must agree with the bench
+        thorlabs.check_against_bench(h, bench, wfs.source)
     sensor = {"zernike_order": int(wfs.order)}
     if "pupil_radius_mm" in h:
         sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])
@@ -332,21 +335,28 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
 
 
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
-                  robot: RobotModel | str | None = None, wfs_header: str = "error") -> SessionData:
+                  robot: RobotModel | str | None = None, wfs_header: str = "error", pose_pattern: str | None = None,
+                  reference_pose: str | None = None) -> SessionData:
     """Read and match a session's files by pose id (ids in one file only are reported in
-    ``rejected``; fewer than 3 matches is a ConfigError naming both files). Implausible
-    inputs are refused first (``plausibility``): an all-zero or constant WFS file, header
-    values that contradict the bench (wfs_header: "error", "file" or "bench"), flange poses
-    beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files). measurements:
+    a WFS file, or a folder/glob of per-pose instrument files (``formats.read_wfs``;
+    pose_pattern: the file-name pattern of their ids); integer ids match as integers;
+    reference_pose: the pose of a user reference the measurements are relative to
+    (default: the files' own ``reference_pose``; ``measurement.referenced_session``).
+    Implausible inputs are refused first (``plausibility``): an all-zero or constant WFS
+    file, header values that contradict the bench (wfs_header: "error", "file" or "bench"),
+    flange poses beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
-    wfs = _as_table(measurements, formats.read_wfs)
+    wfs = _as_table(measurements, lambda p: formats.read_wfs(p, pose_pattern=pose_pattern))
     poses = _as_table(robot_poses, formats.read_robot_poses)
     check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
     check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
-    check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
+    if not isinstance(wfs, thorlabs.SpotFields):
+        check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
     units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
     check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
+    poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:
@@ -360,21 +370,31 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    b = bench_for_measurements(bench, wfs, wfs_header)
-    model = ForwardModel(b, lens)
+    A = poses.T[[poses.ids.index(i) for i in common]]
+    meas = None
+    if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
+        b = spot_bench(bench, wfs)
+        meas, z, _ = slope_inputs(wfs, ForwardModel(b, lens), rows=[wfs.ids.index(i) for i in common])
+        model = meas.model(ForwardModel(b, lens))
+    else:
+        b = bench_for_measurements(bench, wfs, wfs_header)
+        model = ForwardModel(b, lens)
+        z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
     check_job_memory(job_memory_bytes(len(common), len(model.modes), model.pupil.n_lenslets),
                      f"calibrating {len(common)} poses", f"{poses.source or 'robot poses'}")
-    A = poses.T[[poses.ids.index(i) for i in common]]
-    z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    if ref is not None:
+        meas = Measurement(meas.kind if meas else "zernike", meas.lenslets if meas else None,
+                           meas.dropped if meas else (), reference=common.index(ref))
     return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
-                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected))
+                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected), measurement=meas)
 
 
 def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsData,
               robot_poses: str | PathLike[str] | formats.PoseTable, *, bench: Bench | None = None,
               robot: RobotModel | str | None = None, method: str = "joint",
               tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
-              progress: Callable[[int, int], None] | None = None, wfs_header: str = "error") -> CalibrationResult:
+              progress: Callable[[int, int], None] | None = None, wfs_header: str = "error",
+              pose_pattern: str | None = None, reference_pose: str | None = None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     Parameters
@@ -418,5 +438,6 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     """
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
-    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, wfs_header=wfs_header)
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, wfs_header=wfs_header,
+                         pose_pattern=pose_pattern, reference_pose=reference_pose)
     return run(data, method, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)

@@ -55,15 +55,15 @@ class JointFrames:
     warnings: tuple = field(default=())
 
 
-def _per_pose(bench, param, res, z, A, Tn, robot_cov):
+def _per_pose(bench, param, res, z, A, Tn, robot_cov, measurement=None):
     """(zernike chi2 (n,), robot chi2 (n,)) of the used poses at the estimate."""
-    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True)
+    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True, measurement)
     r = pb.residuals(res.X, res.Z, res.theta, res.robot_errors)[0]
     return np.sum(r * r, axis=1), np.sum((res.robot_errors @ pb.WA.T) ** 2, axis=1)
 
 
 def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, robot_cov, *, alpha: float = OUTLIER_ALPHA,
-                   params=None):
+                   params=None, measurement=None):
     """(result, parameterisation, start index) of the best joint fit over ``starts``
     [(X0, Z0), ...] (module docstring): among the fits the chi2 test accepts, the one
     using most poses, then the lowest cost; if the test flags every fit, the lowest
@@ -78,7 +78,8 @@ def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, rob
         else:
             param = params[i]
         try:
-            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, alpha=alpha)
+            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, alpha=alpha,
+                                  measurement=measurement)
         except CalibrationError as e:
             error = e
             continue
@@ -128,17 +129,18 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
     for attempt in range(2):
         if attempt == 0:
             res, param, i_best = best_joint_fit(bench, lens, tol, data.z, data.A, Tn, starts, robot_cov,
-                                                alpha=outlier_alpha)
+                                                alpha=outlier_alpha, measurement=data.measurement)
         else:  # outliers left out: refit from the estimate (the basin is found), same theta directions
             res, param, _ = best_joint_fit(bench, lens, tol, data.z[keep], data.A[keep], Tn, [(res.X, res.Z)],
-                                           robot_cov, alpha=outlier_alpha, params=[param])
+                                           robot_cov, alpha=outlier_alpha, params=[param],
+                                           measurement=data.measurement)
         kept = np.flatnonzero(keep)
         for k in kept[~res.used]:
             rejected.append({"pose": str(ids[k]), "reason": "unlit in the joint fit: at its start, or at the "
                              "pupil's edge on its way to the minimum (left out)"})
         keep[kept[~res.used]] = False
         used_idx = np.flatnonzero(keep)
-        zc, rc = _per_pose(bench, param, res, data.z[used_idx], data.A[used_idx], Tn, robot_cov)
+        zc, rc = _per_pose(bench, param, res, data.z[used_idx], data.A[used_idx], Tn, robot_cov, data.measurement)
         m = data.z.shape[1]
         thr = robust_chi2_threshold(zc, m, outlier_alpha)
         out = zc > thr

@@ -191,12 +191,16 @@ class CalibrationResult:
         return png_bytes(plot_calibration_residuals(self))
 
     def files(self, accept_failed_check: bool = False) -> dict:
-        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png;
-        without easy_handeye.yaml when the model check failed (unless ``accept_failed_check``,
-        for research: the JSON still says "valid": false)."""
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, the ROS 2 launch file
+        (``ros2.static_transform_launch``: Z and X), summary.txt, residuals.png; without the two
+        files a robot cell would load (easy_handeye.yaml, the launch file) when the model check
+        failed (unless ``accept_failed_check``, for research: the JSON still says "valid": false)."""
+        from .ros2 import LAUNCH_FILE_NAME, static_transform_launch
+
         out = {"calibration.json": formats.dumps_json(self.to_dict()) + "\n"}
         if self.valid or accept_failed_check:
             out["easy_handeye.yaml"] = formats.easy_handeye_yaml(self.Z)
+            out[LAUNCH_FILE_NAME] = static_transform_launch(self.Z, self.X)
         out["summary.txt"] = self.summary()
         out["residuals.png"] = self.residual_plot()
         return out
@@ -231,6 +235,7 @@ class SessionData:
     robot: RobotModel | None
     scene: Scene
     rejected: tuple = ()
+    measurement: object = None  # calibration.measurement.Measurement of z (None: Zernikes; model is its model)
 
     @property
     def robot_name(self) -> str:

@@ -26,11 +26,15 @@ def simulate_session_cmd(
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
     force: bool = typer.Option(False, "--force", help="overwrite session files already in the output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+    instrument_files: bool = typer.Option(False, "--instrument-files",
+                                          help="also write thorlabs/ (WFS software exports, one per pose) and "
+                                               "spot_fields/ (SDK spot deviations + MLA data, NPZ)"),
 ) -> None:
     """Simulate a bench session's files to rehearse calibrate.
 
-    Writes robot_poses.csv, wfs_zernike.csv and truth.json; refuses to overwrite them (they
-    could be a real session's) without --force."""
+    Writes robot_poses.csv, wfs_zernike.csv and truth.json (with --instrument-files also the
+    folders thorlabs/ and spot_fields/, each a valid --measurements); refuses to overwrite them
+    (they could be a real session's) without --force."""
     from ..calibration.formats import write_bundle
     from ..calibration.plausibility import check_poses_count
 
@@ -47,10 +51,11 @@ def simulate_session_cmd(
     check_seed(seed)
     tol = None if tolerances.lower() == "none" else tolerances
     s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n)
-    paths = write_bundle(out, s.files())
+    paths = write_bundle(out, s.files(instrument=instrument_files))
     info(f"session: {len(s.ids)} poses, {len(s.unlit)} unlit on the as-built lens"
          + (f" ({', '.join(s.unlit)})" if s.unlit else ""))
-    info("files: " + ", ".join(str(v) for v in paths.values()))
+    info("files: " + ", ".join(str(v) for k, v in paths.items() if "/" not in k)
+         + (f", {out / 'thorlabs'}/, {out / 'spot_fields'}/" if instrument_files else ""))
     info(f"next: lensforge calibrate {design} --measurements {paths['wfs_zernike.csv']} "
          f"--robot-poses {paths['robot_poses.csv']}")
     if json_out:

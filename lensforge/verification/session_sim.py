@@ -110,16 +110,52 @@ class SimulatedSession:
     plan: object
     header: dict
     seed: int
+    slopes: np.ndarray | None = None  # (k, n_pupil, 2) rad: the noisy lenslet slopes behind zernike_thorlabs
+    bench: Bench | None = None
 
-    def files(self) -> dict:
-        """{robot_poses.csv, wfs_zernike.csv, truth.json}: name -> text."""
+    def instrument_files(self, spot_format: str = "npz") -> dict:
+        """The same measurements in the instrument's own layouts (``calibration.thorlabs``):
+        ``thorlabs/pose_<id>.csv`` (WFS software exports, cp1252, CRLF) and
+        ``spot_fields/pose_<id>.<npz|csv>`` (SDK spot deviations in pixels over the whole
+        lenslet grid, NaN outside the pupil, with the MLA data). The spot fields hold the very
+        slopes the Zernikes were fitted from."""
+        from ..calibration import thorlabs
+        from ..optics.shack_hartmann import lenslet_pupil
+
+        sensor = self.bench.sensor
+        out = {}
+        for i, z in zip(self.wfs_ids, self.zernike_thorlabs):
+            out[f"thorlabs/pose_{int(i):02d}.csv" if str(i).isdigit() else f"thorlabs/pose_{i}.csv"] = \
+                thorlabs.export_text(z, self.header, comment=f"lensforge simulated session, seed {self.seed}")
+        n_side = int(np.floor(sensor.aperture_mm / sensor.pitch_mm + 1e-9))
+        pupil = lenslet_pupil(sensor)
+        ix = np.rint(pupil.centres[:, 0] / sensor.pitch_mm + 0.5 * (n_side - 1)).astype(int)
+        iy = np.rint(pupil.centres[:, 1] / sensor.pitch_mm + 0.5 * (n_side - 1)).astype(int)
+        f_um, px_um = sensor.lenslet_focal_mm * 1e3, sensor.pixel_mm * 1e3
+        mla = {"focal_length_um": f_um, "lenslet_pitch_um": sensor.pitch_mm * 1e3, "pixel_pitch_um": px_um,
+               "center_offset_mm": (0.0, 0.0)}
+        head = {k: v for k, v in self.header.items()}
+        for i, s in zip(self.wfs_ids, self.slopes):
+            dev = np.full((n_side, n_side, 2), np.nan)
+            dev[iy, ix] = s * f_um / px_um  # rad -> px: deviation = slope * focal length / pixel pitch
+            name = f"spot_fields/pose_{int(i):02d}" if str(i).isdigit() else f"spot_fields/pose_{i}"
+            if spot_format == "npz":
+                out[name + ".npz"] = thorlabs.spot_field_npz(dev, header=head, **mla)
+            else:
+                out[name + ".csv"] = thorlabs.spot_field_csv(dev, header=head, **mla)
+        return out
+
+    def files(self, instrument: bool = False) -> dict:
+        """{robot_poses.csv, wfs_zernike.csv, truth.json}: name -> text; instrument: also the
+        instrument-layout folders (``instrument_files``)."""
         truth = {"schema_version": SCHEMA_VERSION, "kind": "session_truth", "seed": self.seed,
                  "Z": self.Z.tolist(), "X": self.X.tolist(), "lens": self.lens.to_dict(),
                  "lens_poses": {i: x for i, x in zip(self.ids, self.x_true.tolist())},
                  "unlit": list(self.unlit), "robot": self.plan.robot.name}
-        return {"robot_poses.csv": formats.xyzabc_csv(self.ids, self.A_recorded),
-                "wfs_zernike.csv": formats.wfs_csv(self.wfs_ids, self.zernike_thorlabs, self.header),
-                "truth.json": dumps_json(truth) + "\n"}
+        out = {"robot_poses.csv": formats.xyzabc_csv(self.ids, self.A_recorded),
+               "wfs_zernike.csv": formats.wfs_csv(self.wfs_ids, self.zernike_thorlabs, self.header),
+               "truth.json": dumps_json(truth) + "\n"}
+        return {**out, **self.instrument_files()} if instrument else out
 
 
 def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
@@ -180,7 +216,8 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
     ids = p.ids
     return SimulatedSession(ids=ids, A_recorded=A_rec, A_true=A_true, wfs_ids=tuple(np.array(ids)[lit].tolist()),
                             zernike_thorlabs=zt.reshape(int(lit.sum()), -1), Z=Z, X=X, lens=as_built, x_true=x_true,
-                            unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed))
+                            unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed),
+                            slopes=slopes[lit], bench=bench)
 
 
 def nees(T_true, T_est, cov) -> float:
