@@ -26,6 +26,7 @@ from a real session's files.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 from dataclasses import dataclass
@@ -75,12 +76,13 @@ SENSOR_CAD_ROTATION_RAD = math.radians(0.2)
 class RecordedSession:
     """What ``record_session`` returns: data (the SessionData of the lit poses, measured
     through the lens as built, modelled with the design), x_true (n, 6) true lens poses of
-    every pose (mm, rad), lit (n,) which poses the sensor measured."""
+    every pose (mm, rad), lit (n,) which poses the sensor measured, slopes (n, lenslets, 2)
+    the noisy lenslet slopes (rad) the Zernike vectors were fitted from."""
 
     data: SessionData
     x_true: np.ndarray
     lit: np.ndarray
-    slopes: np.ndarray | None = None  # (n, n_pupil, 2) rad: the noisy lenslet slopes of every pose
+    slopes: np.ndarray  # (n, lenslets, 2) rad: the noisy lenslet slopes of every pose
 
 
 def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, A_true, A_recorded, X, Z,
@@ -101,17 +103,18 @@ def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, 
     A_true, A_recorded = np.asarray(A_true, dtype=float), np.asarray(A_recorded, dtype=float)
     ids = tuple(str(i + 1) for i in range(len(A_true))) if ids is None else tuple(ids)
     x_true = matrix_to_pose(invert_poses(scene.T_SO_nominal) @ invert_poses(Z) @ A_true @ X)
-    res = measured.evaluate(x_true, check_range=False)
-    lit = np.asarray(res.valid, bool)
-    clean = np.array(res.slopes)
-    if sensor is not None:
+    if sensor is None:
+        z, lit, slopes = measured.measure_noisy(x_true, rng)
+    else:  # the physical sensor's noise-free slopes at the lit poses, the same noise draw
+        res = measured.evaluate(x_true, check_range=False)
+        lit = np.asarray(res.valid, bool)
+        clean = np.array(res.slopes)
         for i in np.flatnonzero(lit):
             clean[i] = physical_measure(measured, x_true[i], sensor).slopes
             if tick is not None:
                 tick()
-    # the bench's slope noise, drawn for every lenslet of every pose (as ForwardModel.add_noise)
-    slopes = clean + rng.normal(0.0, measured.bench.noise.slope_sigma_urad * 1e-6, clean.shape)
-    z = measured.pupil.fit(slopes)
+        slopes = measured.noisy_slopes(dataclasses.replace(res, slopes=clean), rng)
+        z = measured.pupil.fit(slopes)
     rejected = tuple({"pose": i, "reason": "unlit: the pupil is not lit at this pose (no WFS measurement)",
                       "code": "unlit"} for i, ok in zip(ids, lit) if not ok)
     data = SessionData(ids=tuple(np.array(ids)[lit].tolist()), A=A_recorded[lit], z=z[lit], model=nominal,
