@@ -37,6 +37,7 @@ Cost: ~1-3 s per pose on one core (two FFTs of ~1700^2 at the defaults).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -451,7 +452,8 @@ def physical_measure(model: ForwardModel, pose, cfg: PhysicalSensor | None = Non
                                (field.residual_rms * 1e6, field.residual_max * 1e6), valid)
 
 
-def physical_session_slopes(model: ForwardModel, poses, cfg: PhysicalSensor | None = None, tick=None) -> np.ndarray:
+def physical_session_slopes(model: ForwardModel, poses, cfg: PhysicalSensor | None = None,
+                            tick: Callable[[], None] | None = None) -> np.ndarray:
     """Noise-free physical slopes (P, n, 2) at poses (P, 6); ``tick()`` after each pose (progress)."""
     out = []
     for x in np.atleast_2d(np.asarray(poses, float)):

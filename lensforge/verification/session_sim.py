@@ -27,6 +27,7 @@ from a real session's files.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 import math
 import tempfile
 from dataclasses import dataclass
@@ -87,7 +88,7 @@ class RecordedSession:
 
 def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, A_true, A_recorded, X, Z,
                    rng: np.random.Generator, ids=None, robot: RobotModel | None = None,
-                   sensor: PhysicalSensor | None = None, tick=None) -> RecordedSession:
+                   sensor: PhysicalSensor | None = None, tick: Callable[[], None] | None = None) -> RecordedSession:
     """Simulate what the sensor and the robot record (module docstring).
 
     nominal: the design's model (what the calibration assumes); measured: the lens as built
@@ -192,7 +193,7 @@ class SimulatedSession:
 def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
                      bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
                      grasp: InitialPoseModel | None = None, session_plan: Plan | None = None,
-                     sensor: str | PhysicalSensor = "model", tick=None) -> SimulatedSession:
+                     sensor: str | PhysicalSensor = "model", tick: Callable[[], None] | None = None) -> SimulatedSession:
     """Simulate one bench session: the files a real session writes, to rehearse ``calibrate``
     (see the module docstring).
 
