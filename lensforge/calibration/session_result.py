@@ -10,13 +10,15 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from ..optics.shack_hartmann import ForwardModel
 from . import formats
 from .model_check import ModelCheck, check_chi2
 from .robot import RobotModel, Scene
 
-__all__ = ["CalibrationResult", "SessionData", "frame_dict", "std_dict", "OUTLIER_ALPHA", "SCHEMA_VERSION"]
+__all__ = ["CalibrationResult", "SessionData", "frame_dict", "std_dict", "robust_chi2_threshold", "OUTLIER_ALPHA",
+           "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
 
@@ -96,6 +98,7 @@ class CalibrationResult:
     warnings: tuple = field(default=())
     outlier_threshold: float = float("nan")
     extra: dict = field(default_factory=dict)
+    estimates: tuple = field(default=())  # two-stage: (id, lens pose (6,), cov (6, 6)) of each used pose
 
     @property
     def model_check(self) -> ModelCheck:
@@ -188,18 +191,31 @@ class CalibrationResult:
         return png_bytes(plot_calibration_residuals(self))
 
     def files(self, accept_failed_check: bool = False) -> dict:
-        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png;
-        without easy_handeye.yaml when the model check failed (unless ``accept_failed_check``,
-        for research: the JSON still says "valid": false)."""
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, the ROS 2 launch file
+        (``ros2.static_transform_launch``: Z and X), summary.txt, residuals.png; without the two
+        files a robot cell would load (easy_handeye.yaml, the launch file) when the model check
+        failed (unless ``accept_failed_check``, for research: the JSON still says "valid": false)."""
+        from .ros2 import LAUNCH_FILE_NAME, static_transform_launch
+
         out = {"calibration.json": formats.dumps_json(self.to_dict()) + "\n"}
         if self.valid or accept_failed_check:
             out["easy_handeye.yaml"] = formats.easy_handeye_yaml(self.Z)
+            out[LAUNCH_FILE_NAME] = static_transform_launch(self.Z, self.X)
         out["summary.txt"] = self.summary()
         out["residuals.png"] = self.residual_plot()
         return out
 
 
 OUTLIER_ALPHA = 1e-3  # family-wise false-alarm rate of the outlier test
+
+
+def robust_chi2_threshold(chi2_values, dof: int, alpha: float = OUTLIER_ALPHA) -> float:
+    """The outlier threshold of every calibration method: the Bonferroni 1 - alpha/n quantile of
+    the chi2(dof) law over n values, scaled up by their median over its expectation, so that an
+    overall misfit (a lens as built, a noise model too small) does not reject every pose."""
+    v = np.asarray(chi2_values, dtype=float)
+    scale = max(1.0, float(np.median(v)) / chi2_dist.median(dof)) if v.size else 1.0
+    return float(chi2_dist.ppf(1.0 - alpha / max(v.size, 1), dof) * scale)
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,12 +225,18 @@ class SessionData:
     ids (n,); A: (n, 4, 4) recorded flange poses (mm); z: (n, m) measured Zernikes (um,
     Noll modes model.modes); model: ForwardModel of the design's lens on the bench as
     measured (WFS order, pupil, wavelength); robot; scene: the robot's nominal cell
-    (initial guesses); rejected: [{"pose", "reason"}] so far (unmatched ids)."""
+    (initial guesses; its ``noise`` is the robot's repeatability every method uses);
+    rejected: [{"pose", "reason"}] so far (unmatched ids, poses the sensor did not see)."""
 
     ids: tuple
     A: np.ndarray
     z: np.ndarray
     model: ForwardModel
-    robot: RobotModel
+    robot: RobotModel | None
     scene: Scene
     rejected: tuple = ()
+    measurement: object = None  # calibration.measurement.Measurement of z (None: Zernikes; model is its model)
+
+    @property
+    def robot_name(self) -> str:
+        return self.robot.name if self.robot is not None else self.scene.robot.name

@@ -61,12 +61,20 @@ def explain_no_fit(e: CalibrationError, design, measurements, robot_poses, bench
 def calibrate_cmd(
     design: str = typer.Argument(..., help="design JSON (or a paper lens name)"),
     measurements: Path = typer.Option(..., "--measurements", "-m",
-                                      help="WFS Zernike export: CSV pose,Z1..ZK (um, Thorlabs order) or lensforge JSON"),
+                                      help="WFS measurements: CSV pose,Z1..ZK (um, Thorlabs order), lensforge JSON, "
+                                           "or a folder / quoted glob of per-pose Thorlabs WFS exports or SDK "
+                                           "spot fields (pose id = last integer in the file name)"),
     robot_poses: Path = typer.Option(..., "--robot-poses", "-r",
                                      help="flange poses: CSV pose,X,Y,Z,A,B,C (mm/deg), CSV pose,x,y,z,qw,qx,qy,qz "
                                           "with '# units: m|mm', or JSON 4x4"),
     robot: Optional[str] = typer.Option(None, "--robot", help=ROBOT_HELP),
-    method: str = typer.Option("joint", "--method", help="calibration method (calibration.session.CALIBRATION_METHODS): "
+    pose_pattern: Optional[str] = typer.Option(None, "--pose-pattern",
+                                               help="regular expression whose first group is the pose id in a "
+                                                    "measurement file's name (default: its last integer)"),
+    reference_pose: Optional[str] = typer.Option(None, "--reference-pose",
+                                                 help="the pose id of the user reference the measurements are "
+                                                      "relative to (default: the files' reference_pose, if any)"),
+    method: str = typer.Option("joint", "--method", help="calibration method (calibration.pipeline.METHODS): "
                                                          "joint (default; estimates the as-built lens with X and Z) "
                                                          "or two-stage"),
     tolerances: str = typer.Option("default", "-t", "--tolerances",
@@ -86,17 +94,20 @@ def calibrate_cmd(
 
     X = lens in the flange, Z = sensor in the robot base (mm, deg, 1-sigma).
 
-    Writes calibration.json, easy_handeye.yaml (ROS), summary.txt and residuals.png. A fit that
-    fails its chi2 model check exits 3 with the diagnostics and the likely mistake, and no
-    easy_handeye.yaml."""
+    Writes calibration.json, easy_handeye.yaml (ROS), lensforge_calibration.launch.py (ROS 2
+    static transforms of Z and X), summary.txt and residuals.png. A fit that fails its chi2
+    model check exits 3 with the diagnostics and the likely mistake, and writes neither
+    easy_handeye.yaml nor the launch file."""
     check_output(out, folder=True, need_mb=2)
     with progress_bar(None, "estimating lens poses", enabled=not (no_progress or json_out)) as bar:
         from ..calibration.formats import write_bundle
+        from ..calibration.ros2 import LAUNCH_FILE_NAME
         from ..calibration.session import calibrate
 
         try:
             res = calibrate(design, measurements, robot_poses, bench=bench_arg(bench), robot=robot, method=method,
-                            tolerances=tolerances, progress=bar.update, wfs_header=wfs_header)
+                            tolerances=tolerances, progress=bar.update, wfs_header=wfs_header,
+                            pose_pattern=pose_pattern, reference_pose=reference_pose)
         except CalibrationError as e:  # too few lens poses to fit: the same convention mistakes are the usual cause
             explain_no_fit(e, design, measurements, robot_poses, bench, robot, method, tolerances, wfs_header)
             raise
@@ -110,7 +121,7 @@ def calibrate_cmd(
         mistake = dx.mistake
         res = replace(res, extra={**res.extra, "diagnosis": dx.to_dict()})
     paths = write_bundle(out, res.files(accept_failed_check=accept_failed_check),
-                         drop=() if (res.valid or accept_failed_check) else ("easy_handeye.yaml",))
+                         drop=() if (res.valid or accept_failed_check) else ("easy_handeye.yaml", LAUNCH_FILE_NAME))
     info(res.summary().rstrip())
     info("files: " + ", ".join(str(v) for v in paths.values()))
     if json_out:

@@ -241,7 +241,7 @@ def handeye_cmd(
     # imported here so that `lensforge --help` stays fast (no scipy at CLI import)
     from ..calibration.formats import easy_handeye_yaml, write_bundle
     from ..calibration.handeye import solve_handeye
-    from ..calibration.session import frame_dict
+    from ..calibration.session_result import frame_dict
 
     if poses is not None and (robot_poses or lens_poses):
         raise ConfigError("handeye: give POSES.json or --robot-poses with --lens-poses, not both")

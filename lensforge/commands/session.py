@@ -25,34 +25,50 @@ def simulate_session_cmd(
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
     out: Path = typer.Option(..., "-o", "--out", help="output folder"),
     force: bool = typer.Option(False, "--force", help="overwrite session files already in the output folder"),
+    sensor: str = typer.Option("model", "--sensor",
+                               help="what measures: 'model' (lensforge's forward model) or 'physical' (the full-array "
+                                    "physical-optics reference, slow: seconds per pose)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
+    instrument_files: bool = typer.Option(False, "--instrument-files",
+                                          help="also write thorlabs/ (WFS software exports, one per pose) and "
+                                               "spot_fields/ (SDK spot deviations + MLA data, NPZ)"),
 ) -> None:
     """Simulate a bench session's files to rehearse calibrate.
 
-    Writes robot_poses.csv, wfs_zernike.csv and truth.json; refuses to overwrite them (they
-    could be a real session's) without --force."""
+    Writes robot_poses.csv, wfs_zernike.csv and truth.json (with --instrument-files also the
+    folders thorlabs/ and spot_fields/, each a valid --measurements); refuses to overwrite them
+    (they could be a real session's) without --force."""
     from ..calibration.formats import write_bundle
     from ..calibration.plausibility import check_poses_count
+    from ..verification.session_sim import SENSORS
 
+    if sensor not in SENSORS:
+        raise ConfigError(f"--sensor: must be one of {list(SENSORS)}, got {sensor!r}")
     check_poses_count(n, "-n/--poses")
     existing = [f for f in SESSION_FILES if (Path(out) / f).exists()]
     if existing and not force:
         raise ConfigError(f"{out}: already holds {', '.join(existing)} (perhaps a real session's); choose another "
                           "-o/--out or give --force to overwrite")
     check_output(out, folder=True, need_mb=1)
-    from ..calibration.session import frame_dict
+    from ..calibration.session_result import frame_dict
 
+    from ..progress import progress_bar
     from ..verification.session_sim import simulate_session
 
     check_seed(seed)
     tol = None if tolerances.lower() == "none" else tolerances
-    s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n)
-    paths = write_bundle(out, s.files())
+    with progress_bar(n if sensor == "physical" else 0, "physical sensor, poses",
+                      enabled=sensor == "physical" and not (json_out or no_progress)) as bar:
+        s = simulate_session(design, tolerances=tol, seed=seed, bench=bench_arg(bench), robot=robot, n=n,
+                             sensor=sensor, tick=bar.advance)
+    paths = write_bundle(out, s.files(instrument=instrument_files))
     info(f"session: {len(s.ids)} poses, {len(s.unlit)} unlit on the as-built lens"
          + (f" ({', '.join(s.unlit)})" if s.unlit else ""))
-    info("files: " + ", ".join(str(v) for v in paths.values()))
+    info("files: " + ", ".join(str(v) for k, v in paths.items() if "/" not in k)
+         + (f", {out / 'thorlabs'}/, {out / 'spot_fields'}/" if instrument_files else ""))
     info(f"next: lensforge calibrate {design} --measurements {paths['wfs_zernike.csv']} "
          f"--robot-poses {paths['robot_poses.csv']}")
     if json_out:
-        emit_json({"schema_version": 1, "poses": list(s.ids), "unlit": list(s.unlit),
+        emit_json({"schema_version": 1, "poses": list(s.ids), "unlit": list(s.unlit), "sensor": sensor,
                    "Z": frame_dict(s.Z, np.zeros((6, 6)))["xyzabc"], "files": {k: str(v) for k, v in paths.items()}})

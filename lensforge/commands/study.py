@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -14,11 +15,10 @@ from ._common import MAX_TRIALS, check_seed, emit_json, info
 
 
 def _tolerances(path):
-    from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+    """The --tolerances option: a TOML path, "default" (also when omitted) or "none" (noise only)."""
+    from ..asbuilt.tolerances import resolve_tolerances
 
-    if path is None:
-        return load_tolerances(DEFAULT_TOLERANCES_FILE) if Path(DEFAULT_TOLERANCES_FILE).exists() else Tolerances()
-    return load_tolerances(path)
+    return resolve_tolerances("default" if path is None else str(path))[0]
 
 
 def _fmt(v, unit, digits=3):
@@ -76,7 +76,7 @@ def _print_errors(s: dict) -> None:
 
 def study_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
-    tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
+    tolerances: Optional[str] = typer.Option(None, "--tolerances", "-t", help="tolerance TOML, 'default' (the shipped one, also when omitted) or 'none' (noise only)"),
     lenses: int = typer.Option(1000, "--lenses", "-n", help="number of as-built lenses"),
     poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
     pose_plan: Path = typer.Option(None, "--pose-plan", help="JSON {\"poses\": [[tx, ty, tz, rx, ry, rz], ...]} "
@@ -159,7 +159,7 @@ def budget_advice(bud) -> list[str]:
 
 def budget_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
-    tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
+    tolerances: Optional[str] = typer.Option(None, "--tolerances", "-t", help="tolerance TOML, 'default' (the shipped one, also when omitted) or 'none' (noise only)"),
     target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
     target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
     relative: float = typer.Option(None, "--relative-to-noise",
@@ -186,6 +186,8 @@ def budget_cmd(
     from ..plots.study import plot_budget, plot_sensitivity
 
     tol = _tolerances(tolerances)
+    if tol is None:
+        raise ConfigError("--tolerances: 'none' leaves nothing to budget; give a tolerance TOML or 'default'")
     _check_sizes(seed, lenses, workers)
     check_job(design, bench, poses, calibration, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)

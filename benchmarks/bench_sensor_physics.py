@@ -1,0 +1,208 @@
+"""lensforge's fast sensor model against the full-array physical reference (issue 21).
+
+Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design DESIGN.json]
+     [--lenses polynomial,extended_polynomial] [--poses 4] [--variants base,cut5,round,noxtalk]
+     [--spp 4] [--json OUT.json]
+     ... --design DESIGN.json --sessions 6 --spp 2 [--calibration-tolerances default]: the session study
+     ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
+     ... --cost: S(p) with and without the cross-talk model, one physical pose
+
+Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
+extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
+the per-mode difference physical - model in sigma of lensforge's own measurement noise (sqrt of
+diag R) and in nm, per reference-model variant:
+  base     square, fully filled lenslets, no noise cut (the bench's defaults)
+  cut5     a 5 % per-spot noise cut (sensor.centroid_threshold = 0.05, model and reference alike)
+  round    round 140 um lenslets with dark gaps
+  noxtalk  cross-talk taken out (every 3rd lenslet lit at a time): what remains is pixelisation,
+           whole-pixel window placement and truncation
+  f41/f67  lenslet focal length 4.1 / 6.7 mm (model and reference alike)
+  beamref  the user reference recorded with the bench's laser and no lens (WFS_SetSpotsToUserReference)
+  widebeam a 100 mm beam (no Gaussian irradiance gradient; the lens's own flux gradient stays), model alike
+Also the cost of one physical pose and of the fast model's S(p).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+import lensforge as lf
+from lensforge.calibration.session import load_design_lens, plan
+from lensforge.optics.shack_hartmann import ForwardModel
+from lensforge.verification.physical_sensor import PhysicalSensor, physical_measure
+
+VARIANTS = {
+    "base": ({}, {}),
+    "cut5": ({"centroid_threshold": 0.05}, {}),
+    "round": ({}, {"aperture": "round"}),
+    "noxtalk": ({}, {"lit_stride": 3}),
+    "f41": ({"lenslet_focal_mm": 4.1}, {}),
+    "f67": ({"lenslet_focal_mm": 6.7}, {}),
+    "beamref": ({}, {"reference": "beam"}),
+    "widebeam": ({"laser": {"beam_diameter_mm": 100.0}}, {}),
+}
+
+
+def extreme_poses(lens, bench, k: int) -> np.ndarray:
+    """Nominal plus the k plan poses farthest from nominal (in pose scales)."""
+    p = plan(lens, bench=bench, n=12, seed=0, tolerances=None)
+    x = np.asarray(p.x)
+    order = np.argsort(-np.max(np.abs(x) / np.asarray(bench.pose_scales), axis=1))
+    return np.vstack([np.zeros(6), x[order[:k]]])
+
+
+def compare(lens, bench, poses, variant: str, spp: int) -> dict:
+    sensor_changes, phys_changes = VARIANTS[variant]
+    changes = dict(sensor_changes)
+    laser = changes.pop("laser", None)
+    b = bench.replace(**({"sensor": changes} if changes else {}), **({"laser": laser} if laser else {}))
+    model = ForwardModel(b, lens)
+    cfg = PhysicalSensor(samples_per_pixel=spp, **phys_changes)
+    sig = np.sqrt(np.diag(model.noise_cov))
+    res = model.evaluate(poses, check_range=False)
+    rows = []
+    for i, x in enumerate(poses):
+        t0 = time.perf_counter()
+        r = physical_measure(model, x, cfg)
+        dt = time.perf_counter() - t0
+        dz = r.z - res.z[i]
+        rows.append({"pose": x.tolist(), "valid": bool(res.valid[i]), "max_slope_mrad": float(np.abs(res.slopes[i]).max() * 1e3),
+                     "dz_sigma": (dz / sig).tolist(), "dz_nm": (dz * 1e3).tolist(), "seconds": dt,
+                     "z_model_um": res.z[i].tolist(), "z_physical_um": r.z.tolist(),
+                     "potential_residual_urad": list(r.potential_residual_urad)})
+    return {"modes": model.modes.tolist(), "sigma_nm": (sig * 1e3).tolist(), "rows": rows}
+
+
+def validate(path: str, design: str | None) -> dict:
+    """The fast model with cross-talk (sensor.crosstalk = 'neighbours') at the poses of a compare() JSON:
+    per pose max |dz|/sigma of the old model, the new model, against the physical reference."""
+    d = json.load(open(path))
+    out = {}
+    for key, r in d.items():
+        label, variant = key.split("/")
+        if variant in ("noxtalk", "round"):  # a diagnostic / an aperture the fast model does not have
+            continue
+        lens, bench = load_design_lens(design if label == "design" else label)
+        sensor_changes, _ = VARIANTS[variant]
+        changes = dict(sensor_changes)
+        laser = changes.pop("laser", None)
+        b = bench.replace(sensor={**changes, "crosstalk": "neighbours"}, **({"laser": laser} if laser else {}))
+        model = ForwardModel(b, lens)
+        sig = np.sqrt(np.diag(model.noise_cov))
+        poses = np.array([row["pose"] for row in r["rows"]])
+        t0 = time.perf_counter()
+        z_new = model.evaluate(poses, check_range=False).z
+        dt = (time.perf_counter() - t0) / len(poses)
+        rows = []
+        for i, row in enumerate(r["rows"]):
+            zp, zo = np.array(row["z_physical_um"]), np.array(row["z_model_um"])
+            rows.append({"old_sigma": ((zp - zo) / sig).tolist(), "new_sigma": ((zp - z_new[i]) / sig).tolist(),
+                         "z_new_um": z_new[i].tolist()})
+        out[key] = {"modes": r["modes"], "rows": rows, "seconds_per_pose": dt}
+        print(f"{key:28s} max |dz|/sigma old: " + " ".join(f"{max(np.abs(x['old_sigma'])):6.1f}" for x in rows)
+              + " | new: " + " ".join(f"{max(np.abs(x['new_sigma'])):5.1f}" for x in rows), flush=True)
+    return out
+
+
+def cost(lens_name: str = "zernike", repeat: int = 3) -> dict:
+    """Wall time of one S(p) (sensitivity_from_model at nominal) and of one physical pose, per sensor model."""
+    from lensforge.optics.sensitivity import sensitivity_from_model
+
+    out = {}
+    for xt in ("none", "neighbours"):
+        model = ForwardModel(lf.Bench.default().replace(sensor={"crosstalk": xt}), lf.paper_lens(lens_name))
+        sensitivity_from_model(model)  # warm (compiles, caches)
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            sensitivity_from_model(model)
+            best = min(best, time.perf_counter() - t0)
+        out[xt] = best
+        print(f"S(p), {lens_name} lens, crosstalk={xt}: {best * 1e3:.1f} ms", flush=True)
+    model = ForwardModel(lf.Bench.default(), lf.paper_lens(lens_name))
+    for spp in (2, 4):
+        t0 = time.perf_counter()
+        physical_measure(model, np.zeros(6), PhysicalSensor(samples_per_pixel=spp))
+        out[f"physical_spp{spp}"] = time.perf_counter() - t0
+        print(f"physical sensor, one pose, {spp} samples/pixel: {out[f'physical_spp{spp}']:.1f} s", flush=True)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--design", default=None)
+    ap.add_argument("--lenses", default="polynomial,extended_polynomial")
+    ap.add_argument("--poses", type=int, default=4)
+    ap.add_argument("--variants", default="base,cut5,round,noxtalk")
+    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--sessions", type=int, default=0, help="run the session study (N sessions per sensor) instead")
+    ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
+    ap.add_argument("--sensors", default="model,physical", help="session study: which sensors measure")
+    ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
+    ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
+    a = ap.parse_args(argv)
+    if a.cost:
+        cost()
+        return
+    if a.validate:
+        out = validate(a.validate, a.design)
+        if a.json:
+            with open(a.json, "w") as fh:
+                json.dump(out, fh)
+        return
+    if a.sessions:
+        ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
+        out = sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")), calibration_tolerances=ct)
+        if a.json:
+            with open(a.json, "w") as fh:
+                json.dump(out, fh)
+        return
+    lenses = ([("design", a.design)] if a.design else []) + [(n, n) for n in a.lenses.split(",") if n]
+    out = {}
+    for label, spec in lenses:
+        lens, bench = load_design_lens(spec)
+        poses = extreme_poses(lens, bench, a.poses)
+        for v in a.variants.split(","):
+            r = compare(lens, bench, poses, v, a.spp)
+            out[f"{label}/{v}"] = r
+            worst = [max(np.abs(row["dz_sigma"])) for row in r["rows"]]
+            z4 = [row["dz_nm"][r["modes"].index(4)] for row in r["rows"]]
+            print(f"{label:10s} {v:8s} max |dz|/sigma per pose: " + " ".join(f"{w:6.1f}" for w in worst)
+                  + " | Z4 (nm): " + " ".join(f"{z:6.2f}" for z in z4)
+                  + f" | {np.mean([row['seconds'] for row in r['rows']]):.1f} s/pose", flush=True)
+            if a.json:
+                with open(a.json, "w") as fh:
+                    json.dump(out, fh)
+
+
+def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical"), seed: int = 0,
+             tolerances=None, calibration_tolerances=None) -> dict:
+    """Session study: n_sessions 12-pose sessions per sensor (same seeds, same plan), calibrated
+    (joint; calibration_tolerances None = the lens known), scored on Z (session_sim.check_sessions)."""
+    from lensforge.verification.session_sim import check_sessions
+
+    out = {}
+    for s in sensors:
+        sensor = PhysicalSensor(samples_per_pixel=spp) if s == "physical" else "model"
+        t0 = time.perf_counter()
+        r = check_sessions(design, n_sessions, seed=seed, tolerances=tolerances, sensor=sensor,
+                           calibration_tolerances=calibration_tolerances,
+                           progress=lambda k, n: print(f"  {s}: session {k}/{n}", flush=True))
+        r = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+        r["seconds"] = time.perf_counter() - t0
+        out[s] = r
+        nees = np.array(r["nees"])
+        print(f"{s:9s} NEES median {np.median(nees):8.1f} mean/6 {np.mean(nees) / 6:7.2f} | chi2/dof "
+              f"{np.min(r['chi2_dof']):.2f}-{np.max(r['chi2_dof']):.2f} | p<0.05 {np.mean(np.array(r['p_values']) < 0.05):.2f}"
+              f" | Z err {np.median(r['z_translation_error_mm']) * 1e3:.1f} um, {np.median(r['z_rotation_error_deg']) * 17.453:.2f} mrad"
+              f" | inside 3 sigma {r['inside_3sigma']:.2f} | failed {len(r['failed'])}", flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()

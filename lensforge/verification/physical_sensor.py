@@ -1,0 +1,465 @@
+"""Full-array physical reference model of the Shack-Hartmann sensor (issue 21).
+
+What a real sensor does to the field the posed lens delivers, with none of the fast
+model's simplifications (``optics/shack_hartmann.py``): it shares only the exact ray
+trace and lensforge's Zernike fit matrix.
+
+1. Field at the lenslet array. A regular grid of beam rays is traced through the lens
+   at the pose to the lenslet plane z = 0 of {S}. The eikonal S(X, Y) (optical path,
+   mm) is the least-squares potential of the rays' direction cosines (dS/dX = L,
+   dS/dY = M: Malus-Dupin), a Legendre polynomial of total degree ``potential_degree``
+   over the lit box; the irradiance I = I_beam / |det d(X, Y)/d(u, v)| (exact
+   derivatives of the trace) is fitted alike in log I. The fit residual is reported
+   (``PhysicalMeasurement.potential_residual_urad``). E = sqrt(I) exp(i k S).
+2. The whole lit lenslet array at once, coherently: every lenslet of the sensor whose
+   centre lies within ``margin_lenslets`` pitches of the pupil lenslets' box multiplies
+   E by its thin-lens phase exp(-i k r^2 / 2 f) (ASSUMPTION: ideal paraxial lenslets)
+   inside its aperture: 'square' (fully filled pitch x pitch cells) or 'round'
+   (``lenslet_diameter_mm``, dark gaps). Sample cells that straddle an aperture edge
+   take the area fraction inside.
+3. Angular-spectrum propagation (exact transfer function, no Fresnel or Fraunhofer
+   approximation, zero padding ``pad_mm`` against wrap-around) over the lenslet focal
+   length f to the camera; intensity integrated over 5.5 um pixels
+   (``samples_per_pixel`` field samples per pixel and axis; pixel edges at
+   ``sensor.camera_offset_px`` + multiples of the pixel from the sensor axis).
+   Neighbours' light falls into every window and interferes there.
+4. Centroids: per pupil lenslet a ``sensor.centroid_window_px`` square window placed on
+   whole pixels on the expected spot ('tracking', ASSUMPTION of the algorithm: start at
+   the reference spot plus f times the local ray slope, then re-centre on the
+   centroid, ``tracking_iterations`` times); ``sensor.centroid_threshold`` x the
+   window's peak is subtracted (the per-spot noise cut) before the first moment.
+5. Reference spot field: 'factory' (a uniform plane wave at normal incidence through
+   the same model), 'beam' (a user reference recorded with the bench's laser and no
+   lens, ``WFS_SetSpotsToUserReference``), or given centroids. Slopes are
+   (centroid - reference) / f, fitted with lensforge's fit matrix.
+Cost: ~1-3 s per pose on one core (two FFTs of ~1700^2 at the defaults).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import scipy.fft as sfft
+from numpy.polynomial import legendre as leg
+
+from ..errors import ConfigError
+from ..optics.bench import Bench, Sensor
+from ..optics.shack_hartmann import ForwardModel
+from ..optics.trace import OK, aim_rays, trace_rays
+
+__all__ = ["PhysicalSensor", "PhysicalMeasurement", "MlaField", "physical_measure", "physical_session_slopes", "field_slopes",
+           "ray_field", "plane_field", "spot_centroids", "reference_centroids", "lit_box"]
+
+APERTURES = ("square", "round")
+
+
+@dataclass(frozen=True)
+class PhysicalSensor:
+    """Settings of the reference model that the bench does not hold.
+
+    aperture: 'square' (fully filled cells) or 'round'; lenslet_diameter_mm: the round
+    aperture, 140 um (MLA150-5C spec sheet as cited in issue 21); samples_per_pixel:
+    field samples per camera pixel and axis (4: 1.375 um; the modes move by <= 0.4 sigma
+    from 4 to 5 and by up to 3 sigma from 2 to 4 on the paper's polynomial lens: the lenslet
+    edges' diffraction needs fine samples); margin_lenslets: lit lenslets beyond the pupil
+    lenslets' box; oversample: sub-sample shifts per axis of the camera field for the
+    pixel integral (``_camera_intensity``); pad_mm: zero padding of the propagation grid; potential_degree,
+    ray_grid: the ray-field fit; reference: 'factory' or 'beam' (see the module);
+
+    tracking_iterations: window re-centrings; lit_stride: 1 lights the whole array at once;
+    s > 1 lights only every s-th lenslet along x and y at a time (s^2 runs), which takes the
+    neighbours' cross-talk out (a diagnostic, not a sensor); window_px / threshold: None = the bench's
+    centroid_window_px / centroid_threshold; focal_mm: None = the bench's lenslet focal
+    length (the true device's value may differ from what the model assumes).
+    """
+
+    aperture: str = "square"
+    lenslet_diameter_mm: float = 0.140
+    samples_per_pixel: int = 4
+    margin_lenslets: int = 3
+    pad_mm: float = 0.5
+    potential_degree: int = 14
+    ray_grid: int = 160
+    reference: str = "factory"
+    tracking_iterations: int = 3
+    oversample: int = 1
+    lit_stride: int = 1
+    window_px: int | None = None
+    threshold: float | None = None
+    focal_mm: float | None = None
+
+    def __post_init__(self):
+        if self.aperture not in APERTURES:
+            raise ConfigError(f"physical sensor aperture: must be one of {list(APERTURES)}, got {self.aperture!r}")
+        if self.reference not in ("factory", "beam"):
+            raise ConfigError(f"physical sensor reference: must be 'factory' or 'beam', got {self.reference!r}")
+        if self.samples_per_pixel < 1 or self.margin_lenslets < 1 or self.potential_degree < 2:
+            raise ConfigError("physical sensor: samples_per_pixel >= 1, margin_lenslets >= 1, potential_degree >= 2")
+
+    def focal(self, sensor: Sensor) -> float:
+        return float(self.focal_mm if self.focal_mm is not None else sensor.lenslet_focal_mm)
+
+    def window(self, sensor: Sensor) -> int:
+        w = int(self.window_px if self.window_px is not None else sensor.centroid_window_px)
+        if w < 3:
+            raise ConfigError("physical sensor: the pixel centroid needs a window of >= 3 px "
+                              "(sensor.centroid_window_px = 0, the complete spot, has no camera analogue)")
+        return w
+
+    def cut(self, sensor: Sensor) -> float:
+        return float(self.threshold if self.threshold is not None else sensor.centroid_threshold)
+
+
+@dataclass(frozen=True, eq=False)
+class MlaField:
+    """A field sampled on the lenslet plane: x (N,) sample centres (mm, both axes), the
+    complex field E (N, N) [y, x] (zero outside the lit box), expected slopes (n, 2) of
+    the pupil lenslets (the window's start), and the fit's slope residual (rad, RMS and max)."""
+
+    x: np.ndarray
+    E: np.ndarray
+    expected_slopes: np.ndarray
+    residual_rms: float = 0.0
+    residual_max: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class PhysicalMeasurement:
+    """z (m,) um (Noll modes of the model); slopes (n, 2) rad; centroids_mm / reference_mm
+    (n, 2) spot centroids on the camera; potential_residual_urad: (RMS, max) slope misfit of
+    the ray-field potential; valid: the fast model's verdict (traced, lit, in range)."""
+
+    z: np.ndarray
+    slopes: np.ndarray
+    centroids_mm: np.ndarray
+    reference_mm: np.ndarray
+    potential_residual_urad: tuple
+    valid: bool
+
+
+# ----------------------------------------------------------------------------- geometry
+
+def _lenslet_coords(sensor: Sensor) -> np.ndarray:
+    n_side = int(np.floor(sensor.aperture_mm / sensor.pitch_mm + 1e-9))
+    return sensor.pitch_mm * (np.arange(n_side) - 0.5 * (n_side - 1))
+
+
+def lit_box(sensor: Sensor, cfg: PhysicalSensor, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cx, cy): lenslet centre coordinates (mm) of the lit lenslets along x and y: the pupil
+    lenslets' box widened by ``cfg.margin_lenslets`` on every side (within the sensor)."""
+    c = _lenslet_coords(sensor)
+    m = cfg.margin_lenslets * sensor.pitch_mm + 1e-9
+    out = []
+    for k in range(2):
+        lo, hi = centres[:, k].min() - m, centres[:, k].max() + m
+        out.append(c[(c >= lo) & (c <= hi)])
+    return out[0], out[1]
+
+
+def _grid(sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
+    """Sample centres (N,) (mm), symmetric about 0, N a multiple of 2 spp so pixel edges fall on k * pixel."""
+    spp = cfg.samples_per_pixel
+    dx = sensor.pixel_mm / spp
+    half = max(abs(cx).max(), abs(cy).max()) + 0.5 * sensor.pitch_mm + cfg.pad_mm
+    n = int(np.ceil(2 * half / dx))
+    step = 2 * spp
+    n = int(np.ceil(n / step) * step)
+    while sfft.next_fast_len(n) != n:
+        n += step
+    return (np.arange(n) - 0.5 * n + 0.5) * dx + sensor.camera_offset_px * sensor.pixel_mm
+
+
+def _cell_fractions(x: np.ndarray, dx: float, centres: np.ndarray, width: float) -> np.ndarray:
+    """(N, n) fraction of each sample interval [x - dx/2, x + dx/2] inside each cell [c - w/2, c + w/2]."""
+    lo = np.maximum(x[:, None] - 0.5 * dx, centres[None, :] - 0.5 * width)
+    hi = np.minimum(x[:, None] + 0.5 * dx, centres[None, :] + 0.5 * width)
+    return np.clip(hi - lo, 0.0, None) / dx
+
+
+def lenslet_transmission(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray,
+                         wavelength_mm: float) -> np.ndarray:
+    """Complex transmission (N, N) [y, x] of the lit lenslets on the sample grid x (mm)."""
+    f, p = cfg.focal(sensor), sensor.pitch_mm
+    k = 2 * np.pi / wavelength_mm
+    dx = x[1] - x[0]
+    if cfg.aperture == "square":  # separable: sum_i frac_i(x) exp(-i k (x - c_i)^2 / 2f), one sample in <= 2 cells
+        ax = (_cell_fractions(x, dx, cx, p) * np.exp(-0.5j * k * (x[:, None] - cx[None, :]) ** 2 / f)).sum(axis=1)
+        ay = (_cell_fractions(x, dx, cy, p) * np.exp(-0.5j * k * (x[:, None] - cy[None, :]) ** 2 / f)).sum(axis=1)
+        return ay[:, None] * ax[None, :]
+    # round: each sample belongs to its nearest lenslet; area fraction inside radius R (edge linearised)
+    R = 0.5 * cfg.lenslet_diameter_mm
+    ix = np.clip(np.rint((x - cx[0]) / p).astype(int), 0, len(cx) - 1)
+    iy = np.clip(np.rint((x - cy[0]) / p).astype(int), 0, len(cy) - 1)
+    ux = x - cx[ix]
+    uy = x - cy[iy]
+    r = np.sqrt(ux[None, :] ** 2 + uy[:, None] ** 2)
+    mask = np.clip((R - r) / dx + 0.5, 0.0, 1.0)
+    return mask * np.exp(-0.5j * k * r**2 / f)
+
+
+def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: float, spp: int,
+                      oversample: int = 1) -> np.ndarray:
+    """Pixel intensities (Np, Np) [y, x] at distance f: angular spectrum, then the intensity summed over
+    spp x spp field samples per pixel, each of them seen at oversample x oversample sub-sample shifts (the
+    band-limited field evaluated exactly there by a phase ramp on its spectrum: the intensity has twice the
+    field's bandwidth, so its midpoint sum needs the finer samples)."""
+    n = len(x)
+    dx = x[1] - x[0]
+    fr = sfft.fftfreq(n, dx)
+    arg = 1.0 / wavelength_mm**2 - fr[None, :] ** 2 - fr[:, None] ** 2
+    kz = 2 * np.pi * (np.sqrt(np.clip(arg, 0.0, None)) - 1.0 / wavelength_mm)  # the plane-wave phase k f dropped
+    # single precision: relative rounding ~1e-6 of the intensities, ~1e-4 um of a centroid (1/400 of its noise)
+    spec = sfft.fft2(E.astype(np.complex64), workers=1)
+    spec *= np.where(arg > 0, np.exp(1j * f * kz), 0.0).astype(np.complex64)
+    inten = np.zeros((n, n))
+    shifts = (np.arange(oversample) + 0.5) / oversample - 0.5  # in samples
+    for sy in shifts:
+        ry = np.exp(2j * np.pi * fr * sy * dx).astype(np.complex64)
+        for sx in shifts:
+            rx = np.exp(2j * np.pi * fr * sx * dx).astype(np.complex64)
+            U = sfft.ifft2(spec * ry[:, None] * rx[None, :], workers=1)
+            inten += U.real.astype(float) ** 2 + U.imag.astype(float) ** 2
+    m = n // spp
+    return inten.reshape(m, spp, m, spp).sum(axis=(1, 3))
+
+
+def spot_centroids(inten: np.ndarray, x: np.ndarray, pixel: float, spp: int, start_mm: np.ndarray, window: int,
+                   cut: float, iterations: int) -> np.ndarray:
+    """Centroids (n, 2) mm of pixel windows of ``window`` px placed on whole pixels at start_mm (n, 2),
+    re-centred on their centroid ``iterations`` times; ``cut`` x the window's peak subtracted first."""
+    m = inten.shape[0]
+    edge0 = x[0] - 0.5 * (x[1] - x[0])  # left edge of pixel 0 (a multiple of the pixel)
+    pos = np.array(start_mm, dtype=float)
+    offs = np.arange(window)
+    for _ in range(iterations + 1):
+        s = np.floor((pos - edge0) / pixel - 0.5 * window + 0.5).astype(int)  # first pixel of each window
+        if s.min() < 0 or s.max() + window > m:
+            raise ConfigError("physical sensor: a centroid window leaves the computed camera area; "
+                              "raise pad_mm or margin_lenslets")
+        iy = s[:, 1, None, None] + offs[None, :, None]
+        ix = s[:, 0, None, None] + offs[None, None, :]
+        w = inten[iy, ix]  # (n, window, window) [y, x]
+        if cut > 0:
+            w = np.clip(w - cut * w.max(axis=(1, 2), keepdims=True), 0.0, None)
+        tot = w.sum(axis=(1, 2))
+        cxp = edge0 + (s[:, 0, None] + offs[None, :] + 0.5) * pixel
+        cyp = edge0 + (s[:, 1, None] + offs[None, :] + 0.5) * pixel
+        new = np.stack([np.einsum("nx,nx->n", w.sum(axis=1), cxp), np.einsum("ny,ny->n", w.sum(axis=2), cyp)],
+                       axis=1) / tot[:, None]
+        pos = new
+    return pos
+
+
+# ----------------------------------------------------------------------------- fields
+
+def _legendre_basis(deg: int):
+    terms = [(a, n - a) for n in range(1, deg + 1) for a in range(n + 1)]  # no constant (piston)
+    D = np.zeros((deg + 1, deg + 1))
+    for a in range(1, deg + 1):
+        e = np.zeros(deg + 1)
+        e[a] = 1.0
+        d = leg.legder(e)
+        D[: len(d), a] = d
+    return terms, D
+
+
+def _fit_values(xi, eta, v, deg):
+    terms = [(a, n - a) for n in range(deg + 1) for a in range(n + 1)]
+    Vx, Vy = leg.legvander(xi, deg), leg.legvander(eta, deg)
+    a = np.array([t[0] for t in terms])
+    b = np.array([t[1] for t in terms])
+    coef, *_ = np.linalg.lstsq(Vx[:, a] * Vy[:, b], v, rcond=None)
+    C = np.zeros((deg + 1, deg + 1))
+    C[b, a] = coef
+    return C
+
+
+def _box_mask(x, sensor, cx, cy):
+    p = sensor.pitch_mm
+    mx = (x >= cx[0] - 0.5 * p - 1e-12) & (x <= cx[-1] + 0.5 * p + 1e-12)
+    my = (x >= cy[0] - 0.5 * p - 1e-12) & (x <= cy[-1] + 0.5 * p + 1e-12)
+    return mx, my
+
+
+def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
+    """The field the posed lens delivers on the lit lenslet box, from the exact ray trace (module step 1)."""
+    bench, sensor = model.bench, model.bench.sensor
+    lam = bench.laser.wavelength_nm * 1e-6
+    pose = np.asarray(pose, dtype=float).reshape(1, 6)
+    cx, cy = lit_box(sensor, cfg, model.pupil.centres)
+    p = sensor.pitch_mm
+    lo = np.array([cx[0], cy[0]]) - 0.5 * p
+    hi = np.array([cx[-1], cy[-1]]) + 0.5 * p
+    # the beam preimage of the lit box: rays aimed at a 9 x 9 grid over it
+    g = np.linspace(0.0, 1.0, 9)
+    T = np.stack(np.meshgrid(lo[0] + g * (hi[0] - lo[0]), lo[1] + g * (hi[1] - lo[1]), indexing="xy"), -1).reshape(-1, 2)
+    uv, _, _, st, _ = aim_rays(bench, model.lens, pose, T, kernel=model.kernel)
+    good = st[0] == OK
+    if good.sum() < 4:
+        raise ConfigError("physical sensor: the beam does not reach the lit lenslet box at this pose")
+    u_lo, u_hi = uv[0, good].min(axis=0), uv[0, good].max(axis=0)
+    span = u_hi - u_lo
+    u_lo, u_hi = u_lo - 0.08 * span, u_hi + 0.08 * span
+    n = cfg.ray_grid
+    U, V = np.meshgrid(np.linspace(u_lo[0], u_hi[0], n), np.linspace(u_lo[1], u_hi[1], n), indexing="xy")
+    uvg = np.stack([U.ravel(), V.ravel()], 1)
+    tr = trace_rays(bench, model.lens, pose, uvg, kernel=model.kernel)
+    X = tr.xy[0]
+    d = tr.direction[0] / np.linalg.norm(tr.direction[0], axis=1, keepdims=True)
+    J = tr.derivatives[0, :, :2, :]  # d(X, Y)/d(u, v)
+    det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
+    w = 0.5 * bench.laser.beam_diameter_mm
+    I_beam = np.exp(-2.0 * (uvg[:, 0] ** 2 + uvg[:, 1] ** 2) / (w * w))  # uv: relative to the beam centre
+    centre, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    inside = np.all(np.abs(X - centre) <= h * 1.05, axis=1)
+    ok = (tr.status[0] == OK) & inside & (det > 0)
+    xi, eta = (X[ok, 0] - centre[0]) / h[0], (X[ok, 1] - centre[1]) / h[1]
+    if not np.all(np.abs(xi) <= 1.05) or ok.sum() < 10 * cfg.potential_degree**2:
+        raise ConfigError("physical sensor: too few rays over the lit lenslet box (the lens clips the beam?)")
+    deg = cfg.potential_degree
+    Cs, rms, mx = _fit_potential_xy(xi, eta, d[ok, 0], d[ok, 1], h, deg)
+    CI = _fit_values(xi, eta, np.log(I_beam[ok] / det[ok]), deg)
+    x = _grid(sensor, cfg, cx, cy)
+    mxk, myk = _box_mask(x, sensor, cx, cy)
+    gx_, gy_ = (x[mxk] - centre[0]) / h[0], (x[myk] - centre[1]) / h[1]
+    Vx, Vy = leg.legvander(gx_, deg), leg.legvander(gy_, deg)
+    S = Vy @ Cs @ Vx.T
+    logI = Vy @ CI @ Vx.T
+    k = 2 * np.pi / lam
+    E = np.zeros((len(x), len(x)), complex)
+    E[np.ix_(myk, mxk)] = np.exp(0.5 * (logI - logI.max()) + 1j * k * S)
+    # expected spot start: the local ray slope (tan) at each pupil lenslet centre
+    c = model.pupil.centres
+    _, D = _legendre_basis(deg)
+    vx, vy = leg.legvander((c[:, 0] - centre[0]) / h[0], deg), leg.legvander((c[:, 1] - centre[1]) / h[1], deg)
+    Lc = np.einsum("nb,ba,na->n", vy, Cs, vx @ D) / h[0]
+    Mc = np.einsum("nb,ba,na->n", vy @ D, Cs, vx) / h[1]
+    Nc = np.sqrt(np.clip(1 - Lc**2 - Mc**2, 1e-12, None))
+    return MlaField(x, E, np.stack([Lc / Nc, Mc / Nc], 1), rms, mx)
+
+
+def _fit_potential_xy(xi, eta, gx, gy, h, deg):
+    """As _fit_potential with separate scales h = (h_x, h_y)."""
+    terms, D = _legendre_basis(deg)
+    Vx, Vy = leg.legvander(xi, deg), leg.legvander(eta, deg)
+    dVx, dVy = Vx @ D, Vy @ D
+    a = np.array([t[0] for t in terms])
+    b = np.array([t[1] for t in terms])
+    A = np.vstack([dVx[:, a] * Vy[:, b] / h[0], Vx[:, a] * dVy[:, b] / h[1]])
+    rhs = np.concatenate([gx, gy])
+    coef, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    res = A @ coef - rhs
+    C = np.zeros((deg + 1, deg + 1))
+    C[b, a] = coef
+    return C, float(np.sqrt(np.mean(res**2))), float(np.max(np.abs(res)))
+
+
+def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0.0, 0.0), gaussian: bool = False,
+                curvature_mm: float | None = None) -> MlaField:
+    """An analytic field on the lit box of the pupil lenslets ``centres``: a plane wave of slope (tan) ``slope``
+    (uniform, or the bench's Gaussian beam when ``gaussian``), or with ``curvature_mm`` = R a spherical wave
+    converging to a point R (mm) after the lenslet plane (R < 0: diverging from a point -R before it)."""
+    sensor = bench.sensor
+    lam = bench.laser.wavelength_nm * 1e-6
+    cx, cy = lit_box(sensor, cfg, centres)
+    x = _grid(sensor, cfg, cx, cy)
+    mxk, myk = _box_mask(x, sensor, cx, cy)
+    X, Y = np.meshgrid(x[mxk], x[myk], indexing="xy")
+    tx, ty = slope
+    nrm = np.sqrt(1 + tx * tx + ty * ty)
+    S = (tx * X + ty * Y) / nrm
+    if curvature_mm is not None:
+        R = float(curvature_mm)
+        S = S - np.sign(R) * (np.sqrt(X**2 + Y**2 + R * R) - abs(R))
+    amp = np.ones_like(X)
+    if gaussian:
+        w = 0.5 * bench.laser.beam_diameter_mm
+        amp = np.exp(-(X**2 + Y**2) / (w * w))
+    E = np.zeros((len(x), len(x)), complex)
+    E[np.ix_(myk, mxk)] = amp * np.exp(2j * np.pi / lam * S)
+    exp = np.broadcast_to(np.array([tx, ty]), centres.shape).copy()
+    if curvature_mm is not None:
+        exp = exp - centres / curvature_mm
+    return MlaField(x, E, exp)
+
+
+def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: np.ndarray,
+                  start_mm: np.ndarray | None = None) -> np.ndarray:
+    sensor = bench.sensor
+    lam = bench.laser.wavelength_nm * 1e-6
+    f = cfg.focal(sensor)
+    cx, cy = lit_box(sensor, cfg, centres)
+    T = lenslet_transmission(field.x, sensor, cfg, cx, cy, lam)
+    start = centres + f * field.expected_slopes if start_mm is None else start_mm
+    args = (field.x, sensor.pixel_mm, cfg.samples_per_pixel)
+    k = cfg.lit_stride
+    if k == 1:
+        inten = _camera_intensity(field.E * T, field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+        return spot_centroids(inten, *args, start, cfg.window(sensor), cfg.cut(sensor), cfg.tracking_iterations)
+    p = sensor.pitch_mm
+    ix = np.rint(field.x / p).astype(int) % k  # lattice class of the lenslet each sample belongs to
+    jx = np.rint(centres / p).astype(int) % k
+    out = np.empty_like(start)
+    for a in range(k):
+        for b in range(k):
+            lit = (ix[None, :] == a) & (ix[:, None] == b)
+            mine = (jx[:, 0] == a) & (jx[:, 1] == b)
+            if not mine.any():
+                continue
+            inten = _camera_intensity(field.E * T * lit, field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+            out[mine] = spot_centroids(inten, *args, start[mine], cfg.window(sensor), cfg.cut(sensor),
+                                       cfg.tracking_iterations)
+    return out
+
+
+@lru_cache(maxsize=16)
+def _reference_cached(bench: Bench, cfg: PhysicalSensor, centres_key: bytes, n: int) -> np.ndarray:
+    centres = np.frombuffer(centres_key).reshape(n, 2)
+    field = plane_field(bench, cfg, centres, gaussian=(cfg.reference == "beam"))
+    out = _centroids_of(field, bench, cfg, centres)
+    out.setflags(write=False)
+    return out
+
+
+def reference_centroids(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray) -> np.ndarray:
+    """Reference spot centroids (n, 2) mm of the pupil lenslets ``centres``: 'factory' (uniform plane wave,
+    normal incidence) or 'beam' (the bench's Gaussian laser, no lens), through the same model."""
+    c = np.ascontiguousarray(centres, dtype=float)
+    return _reference_cached(bench, cfg, c.tobytes(), len(c))
+
+
+def field_slopes(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: np.ndarray,
+                 reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(slopes (n, 2) rad, centroids (n, 2) mm, reference (n, 2) mm) of a field on the lenslet plane."""
+    ref = reference_centroids(bench, cfg, centres) if reference is None else np.asarray(reference, float)
+    cen = _centroids_of(field, bench, cfg, centres, start_mm=ref + cfg.focal(bench.sensor) * field.expected_slopes)
+    return (cen - ref) / cfg.focal(bench.sensor), cen, ref
+
+
+def physical_measure(model: ForwardModel, pose, cfg: PhysicalSensor | None = None,
+                     reference: np.ndarray | None = None) -> PhysicalMeasurement:
+    """What the physical sensor reports for the model's lens at ``pose`` (6,) (mm, rad): noise-free.
+
+    reference: user reference centroids (n, 2) mm (default: ``cfg.reference``'s field)."""
+    cfg = cfg or PhysicalSensor()
+    field = ray_field(model, pose, cfg)
+    slopes, cen, ref = field_slopes(field, model.bench, cfg, model.pupil.centres, reference)
+    valid = bool(model.evaluate(np.asarray(pose, float)[None], check_range=False).valid[0])
+    return PhysicalMeasurement(model.pupil.fit(slopes), slopes, cen, ref,
+                               (field.residual_rms * 1e6, field.residual_max * 1e6), valid)
+
+
+def physical_session_slopes(model: ForwardModel, poses, cfg: PhysicalSensor | None = None,
+                            tick: Callable[[], None] | None = None) -> np.ndarray:
+    """Noise-free physical slopes (P, n, 2) at poses (P, 6); ``tick()`` after each pose (progress)."""
+    out = []
+    for x in np.atleast_2d(np.asarray(poses, float)):
+        out.append(physical_measure(model, x, cfg).slopes)
+        if tick is not None:
+            tick()
+    return np.array(out)
+
+

@@ -1,0 +1,167 @@
+"""The full-array physical reference model of the sensor (verification/physical_sensor.py, issue 21)."""
+
+import numpy as np
+import pytest
+
+import lensforge as lf
+from lensforge.errors import ConfigError
+from lensforge.optics.shack_hartmann import ForwardModel, lenslet_pupil
+from lensforge.verification.physical_sensor import PhysicalSensor, field_slopes, physical_measure, plane_field
+
+# coarse field samples (2 per pixel) keep these tests to seconds; the modes move by up to ~3 sigma
+# from 2 to 4 samples per pixel (the default), which the checks below do not resolve
+FAST = PhysicalSensor(samples_per_pixel=2)
+
+
+def _noise_sigma(bench):
+    pup = lenslet_pupil(bench.sensor)
+    return pup, bench.noise.slope_sigma_urad * 1e-6 * np.sqrt(np.diag(pup.F @ pup.F.T))
+
+
+def test_plane_wave_of_known_tilt_lands_at_f_tan(bench):
+    # a uniform plane wave of slope t (tan) against the factory reference: every lenslet reports t.
+    # An ideal paraxial thin lenslet maps a tilt to f tan(theta) only to first order in its
+    # aperture: the mean error is ~3 t <u^2> / 2 f^2 (u over the pitch: 1.1e-4 t); cross-talk and
+    # whole-pixel window placement add a spread of a few urad (slope noise: 8 urad)
+    pup, _ = _noise_sigma(bench)
+    t = 10 * bench.sensor.pixel_mm / bench.sensor.lenslet_focal_mm  # a 10 px spot shift
+    for slope in [(t, 0.0), (0.0123, -0.0047)]:
+        s, cen, ref = field_slopes(plane_field(bench, FAST, pup.centres, slope=slope), bench, FAST, pup.centres)
+        err = s - np.array(slope)
+        np.testing.assert_array_less(np.abs(err.mean(axis=0)), 2.5e-4 * np.abs(slope) + 0.3e-6)
+        assert np.abs(err).max() < 1.5 * bench.noise.slope_sigma_urad * 1e-6
+
+
+@pytest.mark.parametrize("R", [40.0, -60.0])
+def test_pure_defocus_gives_the_known_z4(bench, R):
+    # a spherical wave converging to a point R after the lenslets (R < 0: diverging) has slopes
+    # -x/R and, over the pupil of radius a, Z4 = -a^2 / (4 sqrt(3) R) (mm of OPD, Noll RMS); the
+    # physical sensor reproduces it to 2e-4 relative (the lenslets' own mapping, above), and no
+    # other mode beyond 3.5 sigma
+    pup, sig = _noise_sigma(bench)
+    s, _, _ = field_slopes(plane_field(bench, FAST, pup.centres, curvature_mm=R), bench, FAST, pup.centres)
+    z = pup.fit(s)
+    a = bench.sensor.pupil_radius_mm
+    z4 = -1e3 * a * a / (4 * np.sqrt(3) * R)
+    j4 = list(pup.modes).index(4)
+    assert abs(z[j4] - z4) < 2e-4 * abs(z4)
+    others = np.delete((z - np.where(pup.modes == 4, z4, 0.0)) / sig, j4)
+    assert np.abs(others).max() < 3.5
+
+
+def test_cross_talk_is_the_main_disagreement(bench):
+    # the whole array lit at once against every 3rd lenslet lit at a time (no cross-talk): on the
+    # paper's polynomial lens at nominal the fast model misses Z4 by ~50 sigma with cross-talk and by
+    # < 10 sigma without (issue 21: 48-87 sigma; 3-7 sigma without cross-talk)
+    model = ForwardModel(bench, lf.paper_lens("polynomial"))
+    sig = np.sqrt(np.diag(model.noise_cov))
+    z = model.evaluate(np.zeros(6)).z[0]
+    j4 = list(model.modes).index(4)
+    full = physical_measure(model, np.zeros(6), FAST)
+    alone = physical_measure(model, np.zeros(6), PhysicalSensor(samples_per_pixel=2, lit_stride=3))
+    assert full.valid and full.potential_residual_urad[1] < 1e-3
+    assert (full.z[j4] - z[j4]) / sig[j4] < -30
+    assert np.abs((alone.z - z) / sig).max() < 10
+
+
+def test_round_apertures_and_the_beam_reference_run(bench):
+    model = ForwardModel(bench, lf.paper_lens("extended_polynomial"))
+    for cfg in (PhysicalSensor(samples_per_pixel=2, aperture="round"),
+                PhysicalSensor(samples_per_pixel=2, reference="beam", threshold=0.05)):
+        r = physical_measure(model, np.zeros(6), cfg)
+        assert np.all(np.isfinite(r.z)) and r.slopes.shape == (model.pupil.n_lenslets, 2)
+
+
+def test_settings_are_checked(bench):
+    with pytest.raises(ConfigError, match="aperture"):
+        PhysicalSensor(aperture="hexagonal")
+    with pytest.raises(ConfigError, match="window"):
+        PhysicalSensor(window_px=0).window(bench.sensor)
+
+
+def _max_sigma(model, z_phys, pose):
+    sig = np.sqrt(np.diag(model.noise_cov))
+    return np.abs((z_phys - model.evaluate(pose).z[0]) / sig).max()
+
+
+def test_crosstalk_model_closes_most_of_the_gap(bench):
+    # sensor.crosstalk = 'neighbours' (optics/centroid.py): on the paper's polynomial lens at nominal the
+    # fast model moves from ~50 sigma off the physical sensor to a few sigma (measured on the default
+    # design with 4 samples per pixel: 59-70 sigma -> 3.2-8.3 sigma at nominal and 4 calibration poses)
+    lens = lf.paper_lens("polynomial")
+    old = ForwardModel(bench, lens)
+    new = ForwardModel(bench.replace(sensor={"crosstalk": "neighbours"}), lens)
+    r = physical_measure(old, np.zeros(6), FAST)
+    before, after = _max_sigma(old, r.z, np.zeros(6)), _max_sigma(new, r.z, np.zeros(6))
+    assert before > 30 and after < 0.2 * before
+
+
+@pytest.mark.xfail(strict=True, reason="issue 21: the cross-talk model leaves 3-8 sigma (default design) and "
+                   "is worse than none with a noise cut; see the issue note")
+def test_fast_model_within_one_sigma_of_the_physical_sensor(bench):
+    lens = lf.paper_lens("polynomial")
+    new = ForwardModel(bench.replace(sensor={"crosstalk": "neighbours"}), lens)
+    r = physical_measure(ForwardModel(bench, lens), np.zeros(6), FAST)
+    assert _max_sigma(new, r.z, np.zeros(6)) < 1.0
+
+
+def test_crosstalk_model_jacobian_is_exact():
+    # the complex step through the cross-talk kernel against central differences of the model (a small
+    # pupil keeps it cheap; steps small enough that no window moves by a pixel between them)
+    b = lf.Bench.default().replace(sensor={"crosstalk": "neighbours", "pupil_radius_mm": 0.5, "zernike_order": 3})
+    model = ForwardModel(b, lf.paper_lens("polynomial"))
+    x0 = np.array([0.1, -0.2, 0.3, 0.01, -0.02, 0.015])
+    J, _, _ = model.jacobians(x0[None])
+    h = np.array([1e-5] * 3 + [1e-6] * 3)
+    fd = np.stack([(model.evaluate(x0 + e * hi).z[0] - model.evaluate(x0 - e * hi).z[0]) / (2 * hi)
+                   for e, hi in zip(np.eye(6), h)], axis=1)
+    scale = np.abs(fd).max(axis=0)
+    np.testing.assert_array_less(np.abs(J[0] - fd).max(axis=0), 1e-5 * scale + 1e-9)
+
+
+def test_crosstalk_setting_is_checked(bench):
+    with pytest.raises(ConfigError, match="sensor.crosstalk"):
+        bench.replace(sensor={"crosstalk": "all"})
+
+
+def test_simulate_session_rejects_an_unknown_sensor():
+    from conftest import run_cli
+
+    r = run_cli("simulate-session", "polynomial", "--sensor", "camera", "-o", "/tmp/never", "-t", "none")
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: --sensor")
+
+
+def test_a_session_measured_by_the_physical_sensor(bench):
+    # the session simulator's physical path (coarse settings: the plumbing, not the numbers): every lit
+    # pose is measured by the physical sensor, which reads a different defocus than the model
+    from lensforge.verification.session_sim import simulate_session
+
+    cheap = PhysicalSensor(samples_per_pixel=1, margin_lenslets=1, potential_degree=8, ray_grid=80)
+    ticks = []
+    s_phys = simulate_session("polynomial", tolerances=None, seed=3, n=4, sensor=cheap, tick=lambda: ticks.append(1))
+    s_model = simulate_session("polynomial", tolerances=None, seed=3, n=4, session_plan=s_phys.plan)
+    assert len(ticks) == len(s_phys.wfs_ids) > 0
+    assert np.all(np.isfinite(s_phys.zernike_thorlabs))
+    from lensforge.optics.zernike import from_thorlabs_vector
+
+    def z4(rows):
+        out = []
+        for row in rows:
+            noll, c = from_thorlabs_vector(row)
+            out.append(c[list(noll).index(4)])
+        return np.array(out)
+
+    assert np.all(np.abs(z4(s_phys.zernike_thorlabs) - z4(s_model.zernike_thorlabs)) > 0.002)  # > 2 nm
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 21: calibrate's model has no cross-talk by default (NEES ~240)")
+def test_physical_sessions_calibrate_honestly():
+    # >= 10 sessions of 12 poses measured by the physical sensor, calibrated with the lens known:
+    # mean NEES / 6 in [0.6, 1.6] and chi2 passing at its nominal rate
+    from lensforge.verification.session_sim import check_sessions
+
+    r = check_sessions("polynomial", 10, tolerances=None, calibration_tolerances=None,
+                       sensor=PhysicalSensor(samples_per_pixel=2))
+    assert 0.6 <= np.mean(r["nees"]) / 6 <= 1.6
+    assert np.mean(r["p_values"] < 0.05) <= 0.2
