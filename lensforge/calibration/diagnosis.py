@@ -256,6 +256,8 @@ def diagnose_session(design, measurements, robot_poses, failed, *, bench=None, r
     t0 = time.monotonic()
     wfs = measurements if isinstance(measurements, formats.WfsData) else formats.read_wfs(measurements)
     poses = robot_poses if isinstance(robot_poses, formats.PoseTable) else formats.read_robot_poses(robot_poses)
+    if not isinstance(wfs, formats.WfsData):  # raw spot fields: the Zernike readings do not apply
+        return Diagnosis(None, (), time.monotonic() - t0)
     data = match_session(design, wfs, poses, bench=bench, robot=robot, wfs_header=wfs_header)
     lam = data.model.bench.laser.wavelength_nm
     readings = candidate_readings(design, wfs, poses, wfs_path=wfs.source or None, poses_path=poses.source or None,
@@ -325,6 +327,8 @@ def diagnose_estimate(design, measurement, failed_chi2_dof: float, *, bench=None
 
     t0 = time.monotonic()
     wfs = measurement if isinstance(measurement, formats.WfsData) else formats.read_wfs(measurement)
+    if not isinstance(wfs, formats.WfsData):  # raw spot fields: the Zernike readings do not apply
+        return Diagnosis(None, (), time.monotonic() - t0)
     _, b = load_design_lens(design, bench)
     lam = bench_for_measurements(b, wfs, wfs_header).laser.wavelength_nm
     tries, best = [], None
