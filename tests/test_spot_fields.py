@@ -8,7 +8,7 @@ from lensforge.calibration import thorlabs
 from lensforge.calibration.formats import read_wfs, write_bundle
 from lensforge.calibration.joint import chain_jacobians, joint_information
 from lensforge.calibration.measurement import (Measurement, joint_crlb, measurement, referenced_information,
-                                               slope_inputs, _jacobians)
+                                               slope_inputs, plan_jacobians)
 from lensforge.calibration.session import calibrate, match_session, plan
 from lensforge.calibration.session_joint import resolve_tolerances
 from lensforge.asbuilt.lens_params import parameterise
@@ -149,7 +149,7 @@ def test_referenced_information_and_fit(session):
     bench = Bench.default()
     tol, _ = resolve_tolerances("default")
     param = parameterise(bench, lens, tol, p.x)
-    S, Jt, dX, dZ, dA = _jacobians(bench, param, p.scene, p.x, p.robot.noise.cov, None)
+    S, Jt, dX, dZ, dA = plan_jacobians(bench, param, p.scene, p.x, p.robot.noise.cov, None)
     B = p.scene.T_SO_nominal @ __import__("lensforge.optics.pose", fromlist=["pose_to_matrix"]).pose_to_matrix(p.x)
     I_joint = joint_information(S, B, p.x, p.scene.X, Jt, p.robot.noise.cov)
     I_abs = referenced_information(S, Jt, dX, dZ, dA, p.robot.noise.cov, None)
