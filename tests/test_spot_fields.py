@@ -196,3 +196,16 @@ def test_referenced_spot_fields_calibrate(session):
     assert np.all(np.abs(e) <= 3 * np.sqrt(np.diag(r.handeye.cov_Z)))
     assert 0.8 < r.chi2_dof < 1.2  # ~1570 DOF
     assert "lensforge_calibration.launch.py" in r.files()
+
+
+def test_estimate_one_pose_from_one_instrument_file(session):
+    from lensforge.calibration.session import estimate
+
+    p, s, folder, paths = session
+    i = s.wfs_ids[1]
+    k = s.ids.index(i)
+    for f in (folder / "spot_fields" / f"pose_{int(i):02d}.npz", folder / "thorlabs" / f"pose_{int(i):02d}.csv"):
+        r = estimate(LENS, f)
+        assert r["pose_id"] == i
+        d = r["estimate"].pose - s.x_true[k]
+        assert float(d @ np.linalg.solve(r["estimate"].cov, d)) < 40.0  # chi2(6) at 1e-6

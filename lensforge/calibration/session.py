@@ -299,12 +299,17 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         if str(pose_id) not in wfs.ids:
             raise ConfigError(f"{wfs.source}: field pose: no pose id {pose_id!r} (ids: {', '.join(wfs.ids[:10])}...)")
         k = wfs.ids.index(str(pose_id))
-    b = bench_for_measurements(bench, wfs)
-    model = ForwardModel(b, lens)
-    z = zernike_for_model(wfs.zernike[k], model)[0]
+    if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
+        b = spot_bench(bench, wfs)
+        meas, y, _ = slope_inputs(wfs, ForwardModel(b, lens), rows=[k])
+        model, z, where = meas.model(ForwardModel(b, lens)), y[0], wfs.files[k]
+    else:
+        b = bench_for_measurements(bench, wfs)
+        model = ForwardModel(b, lens)
+        z, where = zernike_for_model(wfs.zernike[k], model)[0], f"{wfs.source}: row {wfs.rows[k]}"
     est, reason = _estimate_one(model, z, [None])
     if est is None:
-        raise CalibrationError(f"{wfs.source}: row {wfs.rows[k]}: no lens pose found ({reason})")
+        raise CalibrationError(f"{where}: no lens pose found ({reason})")
     return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
 
 
