@@ -70,7 +70,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
-from ..fileio import dumps_json, read_json, write_atomic
+from ..interrupts import committing
+from ..fileio import MAX_TABLE_BYTES, dumps_json, read_bounded, read_json, write_atomic
 
 if TYPE_CHECKING:
     from .thorlabs import SpotFields
@@ -170,8 +171,8 @@ class WfsData:
 
 
 def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_text(encoding="utf-8-sig")  # a UTF-8 BOM (Excel, Notepad) is not data
+    try:  # bounded: /dev/zero or a huge file is refused, not read whole (fileio.MAX_TABLE_BYTES)
+        return read_bounded(path, what, MAX_TABLE_BYTES).decode("utf-8-sig")  # a UTF-8 BOM (Excel) is not data
     except FileNotFoundError:
         raise ConfigError(f"{what} {path}: not found") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -382,8 +383,27 @@ def _sniff_pose_format(path: Path) -> str:
 
 
 def read_robot_poses(path: str | os.PathLike[str], fmt: str | None = None) -> PoseTable:
-    """Robot flange poses ^W T_E (mm) by id; fmt a POSE_READERS name, or None to detect
-    it (.json -> json_4x4; a CSV header with qw -> quaternion_csv, else xyzabc_csv)."""
+    """Robot flange poses ^W T_E by pose id.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV ``pose,X,Y,Z,A,B,C`` (mm, degrees, KUKA R = Rz(A) Ry(B) Rx(C)), a CSV
+        ``pose,x,y,z,qw,qx,qy,qz`` with a ``# units:`` line, or JSON 4x4.
+    fmt : str, optional
+        A ``POSE_READERS`` name, or None to detect it (.json -> json_4x4; a CSV header with
+        qw -> quaternion_csv, else xyzabc_csv).
+
+    Returns
+    -------
+    PoseTable
+        ``ids`` (n,) strings, ``T`` (n, 4, 4) mm, ``source``, ``rows`` (line numbers).
+
+    Raises
+    ------
+    ConfigError
+        A bad file (one line naming the file, row and field).
+    """
     path = Path(path)
     fmt = fmt or _sniff_pose_format(path)
     if fmt not in POSE_READERS:
@@ -540,12 +560,33 @@ def _sniff_wfs_format(path: Path) -> str:
 
 def read_wfs(path: str | os.PathLike[str], fmt: str | None = None,
              pose_pattern: str | None = None) -> WfsData | SpotFields:
-    """WFS measurements by id; fmt a WFS_READERS name or None to detect it: a folder or a
-    glob of Thorlabs WFS exports (``*** ... ***`` sections) or of spot fields (.npz, or a CSV
-    with an ``iy,ix,dx_px,dy_px`` header), one file per pose with the pose id from the
-    file name (``thorlabs.pose_id_from_name``; ``pose_pattern`` a regular expression whose
-    first group is the id); a .json file -> wfs_json; else wfs_csv. Returns WfsData, or
-    ``thorlabs.SpotFields`` for spot fields."""
+    """WFS measurements by pose id.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV (one row per pose id, Zernike um in Thorlabs order, mode k = OSA j + 1), a JSON,
+        or a folder or glob of Thorlabs WFS exports (``*** ... ***`` sections) or of spot
+        fields (.npz, or a CSV with an ``iy,ix,dx_px,dy_px`` header), one file per pose with
+        the pose id from the file name (``thorlabs.pose_id_from_name``).
+    fmt : str, optional
+        A ``WFS_READERS`` name, or None to detect it.
+    pose_pattern : str, optional
+        A regular expression whose first group is the pose id in a file name (default: its
+        last integer).
+
+    Returns
+    -------
+    WfsData or thorlabs.SpotFields
+        ``ids`` (n,), ``zernike`` (n, K) um in Thorlabs order (piston first), ``order`` and
+        the header (wavelength_nm, pupil_center_mm, pupil_radius_mm where given); spot fields
+        for per-lenslet files.
+
+    Raises
+    ------
+    ConfigError
+        A bad file (one line naming the file, row and field).
+    """
     path = Path(path)
     fmt = fmt or _sniff_wfs_format(path)
     if fmt not in WFS_READERS:
@@ -653,10 +694,12 @@ def easy_handeye_yaml(Z: np.ndarray, robot_base_frame: str = "base_link", robot_
     return "\n".join(lines) + "\n"
 
 
-def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
+def write_bundle(folder, files: dict, overwrite: bool = True, drop: tuple = ()) -> dict:
     """Write {name: text | bytes} into ``folder`` all or none: the files go into a
     temporary sibling folder first, which then replaces ``folder`` (existing files
-    in ``folder`` not in ``files`` are kept). Returns {name: Path}."""
+    in ``folder`` not in ``files`` are kept, except those named in ``drop``: e.g. the
+    easy_handeye.yaml of an earlier run beside a calibration that failed its check).
+    Returns {name: Path}."""
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     if not folder.name:  # ".", "..", "/": swap and rename need the folder's own name
@@ -667,15 +710,16 @@ def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
     try:
         if folder.exists():
             for p in folder.iterdir():
-                if p.name not in files and p.is_file():
+                if p.name not in files and p.name not in drop and p.is_file():
                     shutil.copy2(p, tmp / p.name)
         for name, data in files.items():
             write_atomic(tmp / name, data)
         old = None
-        if folder.exists():
-            old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
-            os.replace(folder, old)
-        os.replace(tmp, folder)
+        with committing():  # the swap completes whatever signal arrives meanwhile
+            if folder.exists():
+                old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
+                os.replace(folder, old)
+            os.replace(tmp, folder)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:

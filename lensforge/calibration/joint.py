@@ -54,12 +54,12 @@ import numpy as np
 from scipy.special import chdtrc
 
 from ..errors import CalibrationError
-from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, rotations
+from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, right_jacobian_inv_so3, rotations
 from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.lens_params import LensParameterisation
 
-__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_calibrate_from", "joint_information", "pose_chain", "chain_jacobians",
+__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain", "chain_jacobians",
            "simulate_joint_data"]
 
 # relinearise the iteration Jacobians when a step is not at least this much smaller than the one before
@@ -73,19 +73,6 @@ _THETA_TRUST = 3.0
 _FRESH_STEP = 0.3
 
 
-def _right_jacobian_inv_so3(r) -> np.ndarray:
-    """J_r(r)^-1 (..., 3, 3): inverse right Jacobian of SO(3)."""
-    r = np.asarray(r, dtype=float)
-    th = np.linalg.norm(r, axis=-1)[..., None, None]
-    K = np.zeros(r.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -r[..., 2], r[..., 1], -r[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    coef = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1 + np.cos(ths)) / (2 * ths * np.sin(ths)))
-    return np.eye(3) + 0.5 * K + coef * K @ K
-
-
 def pose_chain(A, X, Z, a, T_SO_nominal):
     """Lens poses of the chain: B_i = Z^-1 A_i P(a_i) X (n, 4, 4) and their pose
     vectors x_i = log(T_SO,nominal^-1 B_i) (n, 6)."""
@@ -97,7 +84,7 @@ def chain_jacobians(B, x, X):
     """dx_i / d(xi_X, xi_Z, a_i): (n, 6, 6) each (right perturbations; a_i small)."""
     Minv = np.zeros(x.shape[:-1] + (6, 6))
     Minv[..., :3, :3] = rotations(x[..., 3:])
-    Minv[..., 3:, 3:] = _right_jacobian_inv_so3(x[..., 3:])
+    Minv[..., 3:, 3:] = right_jacobian_inv_so3(x[..., 3:])
     dX = Minv
     dZ = -Minv @ adjoint(invert_poses(B))
     dA = Minv @ adjoint(invert_poses(X))
@@ -445,28 +432,6 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         n_traced=pb.n_traced, parameterisation=param, used=used)
 
 
-def joint_calibrate_from(bench, param: LensParameterisation, z, A, T_SO_nominal, starts, robot_cov,
-                         **kw) -> JointCalibrationResult:
-    """joint_calibrate from each (X0, Z0) of ``starts`` in turn until the chi^2 test
-    accepts the fit (a flagged fit from a poor start is usually a local minimum);
-    returns the accepted or else the lowest-cost result. Typical starts: the two-stage
-    solution, then the nominal grasp and sensor placement of the robot program."""
-    best, error = None, None
-    for X0, Z0 in starts:
-        try:
-            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, **kw)
-        except CalibrationError as e:
-            error = e
-            continue
-        if best is None or res.chi2 < best.chi2:
-            best = res
-        if not res.mismatch:
-            break
-    if best is None:
-        raise error or CalibrationError("joint calibration: no start given")
-    return best
-
-
 def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z, T_SO_nominal, rng=None):
     """Zernike data (n, m) of the as-built lens of theta at the lens poses of the chain
     Z^-1 A_true X (noise added when an rng is given); raises if a pose is unlit."""
@@ -475,7 +440,4 @@ def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z,
     res = model.evaluate(x, check_range=False)
     if not res.valid.all():
         raise CalibrationError(f"simulated data: poses {np.flatnonzero(~res.valid).tolist()} leave the pupil unlit")
-    if rng is None:
-        return res.z
-    sigma = bench.noise.slope_sigma_urad * 1e-6
-    return model.pupil.fit(res.slopes + rng.normal(0.0, sigma, res.slopes.shape))
+    return res.z if rng is None else model.add_noise(res, rng)

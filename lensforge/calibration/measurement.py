@@ -405,19 +405,20 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
 
     from ..asbuilt.lens_params import parameterise
     from ..optics.pose import invert_poses, matrix_to_pose
-    from .session_joint import JointFrames, resolve_tolerances
+    from ..asbuilt.tolerances import no_tolerance_model, resolve_tolerances
+    from .session_joint import JointFrames
     from .session_result import CalibrationResult
 
-    known = tolerances is None or (isinstance(tolerances, str) and tolerances.strip().lower() == "none")
+    known = no_tolerance_model(tolerances)  # no prior: the lens as designed (theta has no direction)
     tol, tol_label = resolve_tolerances("default" if known else tolerances)
-    model, scene, robot = data.model, data.scene, data.robot
+    model, scene = data.model, data.scene
     meas = data.measurement
     base = Measurement(meas.kind, meas.lenslets, meas.dropped)
     Tn = scene.T_SO_nominal
     x_start = matrix_to_pose(invert_poses(Tn) @ invert_poses(scene.Z) @ data.A @ scene.X)
     param = parameterise(model.bench, model.lens, tol, x_start, max_directions=0 if known else None)
     res = referenced_calibrate(model.bench, param, data.z, data.A, meas.reference, Tn, scene.X, scene.Z,
-                               robot.noise.cov, meas=base)
+                               scene.noise.cov, meas=base)
     p = float(chdtrc(res.dof, res.chi2))
     warns = []
     if p < outlier_alpha:
@@ -431,4 +432,4 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
     return CalibrationResult(X=res.X, Z=res.Z, handeye=frames, poses_used=tuple(data.ids),
                              poses_rejected=tuple(data.rejected), per_pose=(), chi2=float(res.chi2), dof=int(res.dof),
                              chi2_dof=float(res.chi2 / res.dof), p_value=p, method="joint-referenced",
-                             robot=robot.name, warnings=tuple(warns), extra=extra)
+                             robot=data.robot_name, warnings=tuple(warns), extra=extra)

@@ -34,14 +34,14 @@ from ..errors import ConfigError, DesignError, LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
+from ..progress import Bar, progress_bar
 from .constraints import Constraints, check_design, require_feasible, working_poses
 from .criteria import check_criterion, criterion_value
 from .design_file import Design, metrics_dict
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
 
-__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
-           "RobustSpec"]
+__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
@@ -65,37 +65,6 @@ def _global_numpy_seed(seed: int):
         np.random.set_state(state)
 
 
-class _Progress:
-    """Rich progress bar on stderr (or nothing)."""
-
-    def __init__(self, enabled: bool, total: int, label: str):
-        self.enabled = enabled
-        self.total = total
-        self.label = label
-        self._p = None
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._p = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
-            self._p.__enter__()
-            self._task = self._p.add_task(self.label, total=self.total)
-        return self
-
-    def update(self, n: int, best: float):
-        if self._p is not None:
-            txt = f"{self.label}  best {best:.5g}" if best < INFEASIBLE else f"{self.label}  (no feasible yet)"
-            self._p.update(self._task, completed=min(n, self.total), description=txt)
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.__exit__(*exc)
-        return False
-
-
 class DesignProblem:
     """Cost function of one design run: u (unit box) -> criterion or penalty.
 
@@ -105,7 +74,7 @@ class DesignProblem:
 
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
-                 progress: _Progress | None = None, robust: RobustSpec | None = None):
+                 progress: Bar | None = None, robust: RobustSpec | None = None, label: str = ""):
         self.bench = bench
         self.robust = robust
         self.par = par
@@ -115,6 +84,7 @@ class DesignProblem:
         self.constraints.check_bench(bench)
         self.poses = working_poses(self.constraints)
         self.max_evals = int(max_evals)
+        self.label = label  # the progress bar's text
         self.time_limit_s = time_limit_s
         self.progress = progress
         self.n_evals = 0
@@ -167,7 +137,9 @@ class DesignProblem:
             if len(self.candidates) > 4 * _N_CANDIDATES:
                 self.candidates = sorted(self.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]
         if self.progress is not None:
-            self.progress.update(self.n_evals, self.best_cost)
+            self.progress.update(min(self.n_evals, self.max_evals))
+            self.progress.describe(f"{self.label}  best {self.best_cost:.5g}" if self.best_cost < INFEASIBLE
+                                   else f"{self.label}  (no feasible yet)")
         return cost
 
     def batch(self, U) -> np.ndarray:
@@ -404,20 +376,61 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
                     template: Lens | None = None, robust: RobustSpec | None = None) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
 
-    bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
-    'zernike', 'conic'; method: 'nelder-mead', 'pso', 'ga', 'cmaes'; seed: int (same
-    seed, same result); criterion: 'J' (paper), 'D' or 'A'; weights: (w1, w2) of J;
-    free / bounds: see ``parameterisation``; constraints: :class:`Constraints`;
-    max_evals: cost evaluations (default per method, DEFAULT_MAX_EVALS); start:
-    'paper' (the template lens's vector if feasible, else random), 'random' or a
-    parameter vector; n_starts: Nelder-Mead starts (the 1st from ``start``, the
-    rest random feasible); particles (PSO); population (GA, CMA-ES); sigma0: CMA-ES
-    step in the unit box; ftol: relative stopping tolerance on the cost;
-    time_limit_s: wall-clock limit; progress: rich progress bar on stderr;
-    robust: a :class:`RobustSpec` to minimise the statistic of the criterion over
-    as-built draws (common random numbers) instead of the nominal criterion; the
-    design's ``robust`` record holds the spec and the returned lens's robust cost.
-    Raises ConfigError for bad settings and DesignError for an infeasible problem.
+    Parameters
+    ----------
+    bench : Bench, optional
+        Default ``Bench.default()``.
+    model : str
+        'polynomial', 'extended_polynomial', 'zernike' or 'conic'.
+    method : str
+        'nelder-mead', 'pso', 'ga' or 'cmaes' (the registry ``METHODS``).
+    seed : int
+        Same seed, same result.
+    criterion : str
+        'J' (paper), 'D' or 'A'.
+    weights : sequence of float
+        (w1, w2) of J.
+    free, bounds : str, sequence or dict, optional
+        Free parameters and their search box (see ``design.parameterisation``).
+    constraints : Constraints, optional
+        Thickness, TIR, lit pupil over the working range.
+    max_evals : int, optional
+        Cost evaluations (default per method, DEFAULT_MAX_EVALS).
+    start : str or numpy.ndarray
+        'paper' (the template lens's vector if feasible, else random), 'random' or a
+        parameter vector.
+    n_starts : int
+        Nelder-Mead starts (the first from ``start``, the rest random feasible).
+    particles : int
+        PSO swarm size.
+    population : int, optional
+        GA and CMA-ES population.
+    sigma0 : float
+        CMA-ES step in the unit box.
+    ftol : float, optional
+        Relative stopping tolerance on the cost.
+    time_limit_s : float, optional
+        Wall-clock limit, s.
+    progress : bool
+        Progress bar on stderr.
+    template : Lens, optional
+        The lens whose fixed parameters the design keeps (default: the paper's lens of ``model``).
+    robust : RobustSpec, optional
+        Minimise the statistic of the criterion over as-built draws (common random
+        numbers) instead of the nominal criterion; the design's ``robust`` record holds
+        the spec and the returned lens's robust cost.
+
+    Returns
+    -------
+    Design
+        The best feasible design with its metrics and provenance.
+
+    Raises
+    ------
+    ConfigError
+        Bad settings.
+    DesignError
+        An infeasible problem.
     """
     bench = bench or Bench.default()
     meth = check_method(method)
@@ -445,8 +458,8 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     rng = np.random.default_rng(seed)
     label = f"{meth} {par.model} ({crit}{', robust' if robust is not None else ''})"
     t0 = time.perf_counter()
-    with _Progress(progress, evals, label) as prog:
-        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust)
+    with progress_bar(evals, label, enabled=progress) as bar:
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, bar, robust, label)
         u0, start_kind = _start_point(prob, start, rng)
         p_start = par.from_unit(u0)
         start_cost = prob(u0)  # counted, so the start is always a candidate
