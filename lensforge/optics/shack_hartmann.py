@@ -412,8 +412,13 @@ class ForwardModel:
         lenslet slopes plus the bench's slope noise (``noise.slope_sigma_urad``, drawn for every
         lenslet of every pose, lit or not, so that a pose's draw does not depend on the others'),
         fitted over the pupil. The one noisy measurement of every simulation."""
+        return self.pupil.fit(self.noisy_slopes(res, rng))
+
+    def noisy_slopes(self, res: ZernikeResult, rng: np.random.Generator) -> np.ndarray:
+        """The lenslet slopes (P, n, 2) in rad behind ``add_noise``'s Zernike vectors (the same
+        draw from the same rng state): the spot field a simulated sensor records."""
         sigma = self.bench.noise.slope_sigma_urad * 1e-6
-        return self.pupil.fit(res.slopes + rng.normal(0.0, sigma, res.slopes.shape))
+        return res.slopes + rng.normal(0.0, sigma, res.slopes.shape)
 
     def measure_noisy(self, poses: ArrayLike, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """(z (P, m) um, lit (P,) bool): noisy Zernike vectors at poses (P, 6) (``add_noise``)

@@ -209,6 +209,8 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
     # the files carry no model: the measured model stands in for the nominal one
     rec = record_session(measured, measured, scene, A_true, A_rec, X, Z, np.random.default_rng(ss_sensor), p.ids)
     model, lit, x_true = measured, rec.lit, rec.x_true
+    # the spot fields behind those Zernikes: the same noise draw (a fresh generator of the same seed)
+    slopes = measured.noisy_slopes(measured.evaluate(x_true, check_range=False), np.random.default_rng(ss_sensor))
     zt = np.array([to_thorlabs_vector(np.concatenate([[1], model.modes]), np.concatenate([[0.0], zi]))
                    for zi in rec.data.z])
     header = {"wavelength_nm": bench.laser.wavelength_nm, "pupil_center_mm": tuple(bench.sensor.pupil_center_mm),
