@@ -357,11 +357,13 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     poses = _as_table(robot_poses, formats.read_robot_poses)
     check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
     check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
-    if not isinstance(wfs, thorlabs.SpotFields):
-        check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
     units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
     check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
     poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
+    if not isinstance(wfs, thorlabs.SpotFields):  # the reference pose's own row is zero by construction
+        rows = [k for k, i in enumerate(wfs.ids) if i != ref]
+        check_wfs_values(wfs.zernike[rows], wfs.source or "WFS file",
+                         tuple(wfs.rows[k] if k < len(wfs.rows) else k + 1 for k in rows))
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:
