@@ -331,7 +331,8 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         check_wfs_values(wfs.zernike[k:k + 1], wfs.source or "WFS file", wfs.rows[k:k + 1])
         b = bench_for_measurements(bench, wfs, wfs_header)
         model = ForwardModel(b, lens)
-        z, where = zernike_for_model(wfs.zernike[k], model)[0], f"{wfs.source}: row {wfs.rows[k]}"
+        z = zernike_for_model(wfs.zernike[k], model)[0]
+        where = f"{wfs.source}: row {wfs.rows[k] if k < len(wfs.rows) else k + 1}"
     est, reason = estimate_one(model, z, [None])
     if est is None:
         raise CalibrationError(f"{where}: no lens pose found ({reason})")
