@@ -41,7 +41,7 @@ from . import formats
 from .model_check import check_chi2
 from .plausibility import pose_file_kind
 
-__all__ = ["Mistake", "Reading", "SESSION_MISTAKES", "WFS_MISTAKES", "pose_file_kind", "candidate_readings",
+__all__ = ["Mistake", "Reading", "SESSION_MISTAKES", "WFS_MISTAKES", "candidate_readings",
            "diagnose_session", "diagnose_estimate", "SCREEN_GAIN", "Diagnosis"]
 
 # a reading must lower the screen's hand-eye chi2/dof this much below the inputs as given to be

@@ -301,6 +301,9 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         Default: the design's bench, adjusted to the measurement's header.
     pose_id : str, optional
         The row to use (default: the file must hold exactly one).
+    wfs_header : str
+        "error" (a header value that contradicts the bench is a ConfigError naming both),
+        "file" (the file's values win) or "bench" (they are ignored).
 
     Returns
     -------

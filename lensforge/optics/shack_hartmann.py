@@ -407,24 +407,26 @@ class ForwardModel:
         z = res.z if rng is None else self.add_noise(res, rng)
         return z[0] if poses.ndim == 1 else z
 
-    def add_noise(self, res: ZernikeResult, rng: np.random.Generator) -> np.ndarray:
-        """The Zernike vectors (P, m) in um the sensor reports for a noise-free result: its
-        lenslet slopes plus the bench's slope noise (``noise.slope_sigma_urad``, drawn for every
-        lenslet of every pose, lit or not, so that a pose's draw does not depend on the others'),
-        fitted over the pupil. The one noisy measurement of every simulation."""
-        return self.pupil.fit(self.noisy_slopes(res, rng))
-
     def noisy_slopes(self, res: ZernikeResult, rng: np.random.Generator) -> np.ndarray:
-        """The lenslet slopes (P, n, 2) in rad behind ``add_noise``'s Zernike vectors (the same
-        draw from the same rng state): the spot field a simulated sensor records."""
+        """The lenslet slopes (P, n, 2) in rad the sensor measures for a noise-free result: its
+        slopes plus the bench's slope noise (``noise.slope_sigma_urad``, drawn for every lenslet
+        of every pose, lit or not, so that a pose's draw does not depend on the others'). The one
+        noisy measurement of every simulation."""
         sigma = self.bench.noise.slope_sigma_urad * 1e-6
         return res.slopes + rng.normal(0.0, sigma, res.slopes.shape)
 
-    def measure_noisy(self, poses: ArrayLike, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """(z (P, m) um, lit (P,) bool): noisy Zernike vectors at poses (P, 6) (``add_noise``)
-        and which poses the sensor can measure (pupil lit, in range); never raises on a dark pose."""
+    def add_noise(self, res: ZernikeResult, rng: np.random.Generator) -> np.ndarray:
+        """The Zernike vectors (P, m) in um the sensor reports: ``noisy_slopes`` fitted over the pupil."""
+        return self.pupil.fit(self.noisy_slopes(res, rng))
+
+    def measure_noisy(self, poses: ArrayLike, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(z (P, m) um, lit (P,) bool, slopes (P, n, 2) rad): noisy Zernike vectors at poses
+        (P, 6), which poses the sensor can measure (pupil lit, in range) and the noisy lenslet
+        slopes they were fitted from (``noisy_slopes``); never raises on a dark pose."""
         res = self.evaluate(poses, check_range=False)
-        return self.add_noise(res, rng), np.asarray(res.valid, bool)
+        slopes = self.noisy_slopes(res, rng)
+        return self.pupil.fit(slopes), np.asarray(res.valid, bool), slopes
 
 
 def measure(bench: Bench, lens: Lens, pose: ArrayLike | None = None, rng: np.random.Generator | None = None) -> np.ndarray:

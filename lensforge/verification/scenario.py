@@ -239,7 +239,7 @@ def run_calibration(bench: Bench, lens: Lens, x_planned, rng: np.random.Generato
     if cfg.n_convergence:
         xc = random_lens_poses(rng, cfg.n_convergence, cfg.convergence_translation_mm, cfg.convergence_rotation_rad)
         _, A_true = visit(xc, offset)
-        zc, lit = model.measure_noisy(matrix_to_pose(invert_poses(T_nom) @ Z_inv @ A_true @ X_true), rng)
+        zc, lit, _ = model.measure_noisy(matrix_to_pose(invert_poses(T_nom) @ Z_inv @ A_true @ X_true), rng)
         logs = []
         for i in range(len(xc)):
             if not lit[i]:

@@ -62,11 +62,13 @@ SENSOR_CAD_ROTATION_RAD = math.radians(0.2)
 class RecordedSession:
     """What ``record_session`` returns: data (the SessionData of the lit poses, measured
     through the lens as built, modelled with the design), x_true (n, 6) true lens poses of
-    every pose (mm, rad), lit (n,) which poses the sensor measured."""
+    every pose (mm, rad), lit (n,) which poses the sensor measured, slopes (n, lenslets, 2)
+    the noisy lenslet slopes (rad) the Zernike vectors were fitted from."""
 
     data: SessionData
     x_true: np.ndarray
     lit: np.ndarray
+    slopes: np.ndarray  # (n, lenslets, 2) rad: the noisy lenslet slopes of every pose
 
 
 def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, A_true, A_recorded, X, Z,
@@ -83,12 +85,12 @@ def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, 
     A_true, A_recorded = np.asarray(A_true, dtype=float), np.asarray(A_recorded, dtype=float)
     ids = tuple(str(i + 1) for i in range(len(A_true))) if ids is None else tuple(ids)
     x_true = matrix_to_pose(invert_poses(scene.T_SO_nominal) @ invert_poses(Z) @ A_true @ X)
-    z, lit = measured.measure_noisy(x_true, rng)
+    z, lit, slopes = measured.measure_noisy(x_true, rng)
     rejected = tuple({"pose": i, "reason": "unlit: the pupil is not lit at this pose (no WFS measurement)",
                       "code": "unlit"} for i, ok in zip(ids, lit) if not ok)
     data = SessionData(ids=tuple(np.array(ids)[lit].tolist()), A=A_recorded[lit], z=z[lit], model=nominal,
                        robot=robot, scene=scene, rejected=rejected)
-    return RecordedSession(data=data, x_true=x_true, lit=lit)
+    return RecordedSession(data=data, x_true=x_true, lit=lit, slopes=slopes)
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,8 +211,6 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
     # the files carry no model: the measured model stands in for the nominal one
     rec = record_session(measured, measured, scene, A_true, A_rec, X, Z, np.random.default_rng(ss_sensor), p.ids)
     model, lit, x_true = measured, rec.lit, rec.x_true
-    # the spot fields behind those Zernikes: the same noise draw (a fresh generator of the same seed)
-    slopes = measured.noisy_slopes(measured.evaluate(x_true, check_range=False), np.random.default_rng(ss_sensor))
     zt = np.array([to_thorlabs_vector(np.concatenate([[1], model.modes]), np.concatenate([[0.0], zi]))
                    for zi in rec.data.z])
     header = {"wavelength_nm": bench.laser.wavelength_nm, "pupil_center_mm": tuple(bench.sensor.pupil_center_mm),
@@ -219,7 +219,7 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
     return SimulatedSession(ids=ids, A_recorded=A_rec, A_true=A_true, wfs_ids=tuple(np.array(ids)[lit].tolist()),
                             zernike_thorlabs=zt.reshape(int(lit.sum()), -1), Z=Z, X=X, lens=as_built, x_true=x_true,
                             unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed),
-                            slopes=slopes[lit], bench=bench)
+                            slopes=rec.slopes[lit], bench=bench)
 
 
 def nees(T_true, T_est, cov) -> float:
