@@ -8,7 +8,7 @@ from lensforge.calibration import thorlabs
 from lensforge.calibration.formats import read_wfs, write_bundle
 from lensforge.calibration.joint import chain_jacobians, joint_information
 from lensforge.calibration.measurement import (Measurement, joint_crlb, measurement, referenced_information,
-                                               slope_inputs, _jacobians)
+                                               slope_inputs, plan_jacobians)
 from lensforge.calibration.session import calibrate, match_session, plan
 from lensforge.calibration.session_joint import resolve_tolerances
 from lensforge.asbuilt.lens_params import parameterise
@@ -149,7 +149,7 @@ def test_referenced_information_and_fit(session):
     bench = Bench.default()
     tol, _ = resolve_tolerances("default")
     param = parameterise(bench, lens, tol, p.x)
-    S, Jt, dX, dZ, dA = _jacobians(bench, param, p.scene, p.x, p.robot.noise.cov, None)
+    S, Jt, dX, dZ, dA = plan_jacobians(bench, param, p.scene, p.x, p.robot.noise.cov, None)
     B = p.scene.T_SO_nominal @ __import__("lensforge.optics.pose", fromlist=["pose_to_matrix"]).pose_to_matrix(p.x)
     I_joint = joint_information(S, B, p.x, p.scene.X, Jt, p.robot.noise.cov)
     I_abs = referenced_information(S, Jt, dX, dZ, dA, p.robot.noise.cov, None)
@@ -196,3 +196,16 @@ def test_referenced_spot_fields_calibrate(session):
     assert np.all(np.abs(e) <= 3 * np.sqrt(np.diag(r.handeye.cov_Z)))
     assert 0.8 < r.chi2_dof < 1.2  # ~1570 DOF
     assert "lensforge_calibration.launch.py" in r.files()
+
+
+def test_estimate_one_pose_from_one_instrument_file(session):
+    from lensforge.calibration.session import estimate
+
+    p, s, folder, paths = session
+    i = s.wfs_ids[1]
+    k = s.ids.index(i)
+    for f in (folder / "spot_fields" / f"pose_{int(i):02d}.npz", folder / "thorlabs" / f"pose_{int(i):02d}.csv"):
+        r = estimate(LENS, f)
+        assert r["pose_id"] == i
+        d = r["estimate"].pose - s.x_true[k]
+        assert float(d @ np.linalg.solve(r["estimate"].cov, d)) < 40.0  # chi2(6) at 1e-6

@@ -41,7 +41,7 @@ from ..optics.shack_hartmann import ForwardModel
 from .joint import JointProblem, chain_jacobians, pose_chain
 from . import thorlabs
 
-__all__ = ["Measurement", "MEASUREMENTS", "measurement", "slope_inputs", "spot_bench", "joint_crlb", "canonical_ids",
+__all__ = ["Measurement", "MEASUREMENTS", "measurement", "slope_inputs", "plan_jacobians", "spot_bench", "joint_crlb", "canonical_ids",
            "referenced_session",
            "referenced_information", "referenced_calibrate", "ReferencedResult", "LENSLET_MATCH_MM"]
 
@@ -149,7 +149,7 @@ def slope_inputs(fields: thorlabs.SpotFields, fm: ForwardModel, rows=None) -> tu
 # ----------------------------------------------------------------------------- CRLB
 
 
-def _jacobians(bench, param, scene, x, robot_cov, meas: Measurement | None):
+def plan_jacobians(bench, param, scene, x, robot_cov, meas: Measurement | None):
     """Whitened S (n, m, 6), Jt (n, m, k), chain blocks, at lens poses x (n, 6) of the
     nominal cell; CalibrationError when a pose is unlit."""
     x = np.atleast_2d(np.asarray(x, float))
@@ -214,7 +214,7 @@ def joint_crlb(bench, param, scene, x, robot_cov=None, *, kinds=("zernike", "slo
     robot_cov = scene.noise.cov if robot_cov is None else np.asarray(robot_cov, float)
     out = {}
     for kind in kinds:
-        jac = _jacobians(bench, param, scene, x, robot_cov, measurement(kind))
+        jac = plan_jacobians(bench, param, scene, x, robot_cov, measurement(kind))
         for ref, name in ((None, kind), (reference, f"{kind}_referenced")):
             if name != kind and reference is None:
                 continue
@@ -399,7 +399,8 @@ def canonical_ids(poses, wfs, reference_pose=None):
 def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-3, progress=None):
     """CalibrationResult of a session whose measurements are relative to a user reference
     taken at pose ``data.measurement.reference`` (``referenced_calibrate`` from the cell's
-    nominal X, Z; theta from the tolerance model as the joint method's). No outlier pass."""
+    nominal X, Z; theta from the tolerance model as the joint method's; tolerances "none" or
+    None: the lens as designed). No outlier pass, no two-stage fallback."""
     from scipy.special import chdtrc
 
     from ..asbuilt.lens_params import parameterise
@@ -408,13 +409,14 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
     from .session_joint import JointFrames
     from .session_result import CalibrationResult
 
-    tol, tol_label = resolve_tolerances("default" if no_tolerance_model(tolerances) else tolerances)
+    known = no_tolerance_model(tolerances)  # no prior: the lens as designed (theta has no direction)
+    tol, tol_label = resolve_tolerances("default" if known else tolerances)
     model, scene = data.model, data.scene
     meas = data.measurement
     base = Measurement(meas.kind, meas.lenslets, meas.dropped)
     Tn = scene.T_SO_nominal
     x_start = matrix_to_pose(invert_poses(Tn) @ invert_poses(scene.Z) @ data.A @ scene.X)
-    param = parameterise(model.bench, model.lens, tol, x_start)
+    param = parameterise(model.bench, model.lens, tol, x_start, max_directions=0 if known else None)
     res = referenced_calibrate(model.bench, param, data.z, data.A, meas.reference, Tn, scene.X, scene.Z,
                                scene.noise.cov, meas=base)
     p = float(chdtrc(res.dof, res.chi2))
@@ -425,7 +427,7 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
         warns.append(f"referenced fit stopped after {res.iterations} iterations without meeting its tolerance")
     frames = JointFrames(X=res.X, Z=res.Z, cov_X=res.cov_X, cov_Z=res.cov_Z, joint=res)
     ref_id = data.ids[meas.reference]
-    extra = {"tolerances": tol_label, "measurement": meas.kind, "reference_pose": ref_id,
+    extra = {"tolerances": "none" if known else tol_label, "measurement": meas.kind, "reference_pose": ref_id,
              "iterations": res.iterations, "converged": bool(res.converged), "start": "the cell's nominal X, Z"}
     return CalibrationResult(X=res.X, Z=res.Z, handeye=frames, poses_used=tuple(data.ids),
                              poses_rejected=tuple(data.rejected), per_pose=(), chi2=float(res.chi2), dof=int(res.dof),

@@ -326,13 +326,19 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         if str(pose_id) not in wfs.ids:
             raise ConfigError(f"{wfs.source}: field pose: no pose id {pose_id!r} (ids: {', '.join(wfs.ids[:10])}...)")
         k = wfs.ids.index(str(pose_id))
-    check_wfs_values(wfs.zernike[k:k + 1], wfs.source or "WFS file", wfs.rows[k:k + 1])
-    b = bench_for_measurements(bench, wfs, wfs_header)
-    model = ForwardModel(b, lens)
-    z = zernike_for_model(wfs.zernike[k], model)[0]
+    if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
+        b = spot_bench(bench, wfs)
+        meas, y, _ = slope_inputs(wfs, ForwardModel(b, lens), rows=[k])
+        model, z, where = meas.model(ForwardModel(b, lens)), y[0], wfs.files[k]
+    else:
+        check_wfs_values(wfs.zernike[k:k + 1], wfs.source or "WFS file", wfs.rows[k:k + 1])
+        b = bench_for_measurements(bench, wfs, wfs_header)
+        model = ForwardModel(b, lens)
+        z = zernike_for_model(wfs.zernike[k], model)[0]
+        where = f"{wfs.source}: row {wfs.rows[k] if k < len(wfs.rows) else k + 1}"
     est, reason = estimate_one(model, z, [None])
     if est is None:
-        raise CalibrationError(f"{wfs.source}: row {wfs.rows[k]}: no lens pose found ({reason})")
+        raise CalibrationError(f"{where}: no lens pose found ({reason})")
     return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
 
 
@@ -355,11 +361,13 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     poses = _as_table(robot_poses, formats.read_robot_poses)
     check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
     check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
-    if not isinstance(wfs, thorlabs.SpotFields):
-        check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
     units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
     check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
     poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
+    if not isinstance(wfs, thorlabs.SpotFields):  # the reference pose's own row is zero by construction
+        rows = [k for k, i in enumerate(wfs.ids) if i != ref]
+        check_wfs_values(wfs.zernike[rows], wfs.source or "WFS file",
+                         tuple(wfs.rows[k] if k < len(wfs.rows) else k + 1 for k in rows))
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:

@@ -343,9 +343,7 @@ def read_export_folder(spec, pattern: str | None = None) -> dict:
     file name (``pose_id_from_name``). Every file must share the fit order, wavelength and
     pupil; the tilt check (``check_tilt_not_cancelled``) runs. ``formats.read_wfs`` (format
     ``thorlabs_export``) returns it as WfsData."""
-    files = expand_measurements(spec, (".csv", ".txt"))
-    if not files:
-        raise ConfigError(f"{spec}: not a folder or a glob of WFS export files")
+    files = expand_measurements(spec, (".csv", ".txt")) or [Path(spec)]  # or one export file
     ids = _ids_of(files, pattern)
     recs = [read_export(f) for f in files]
     order = min(r["order"] for r in recs)
