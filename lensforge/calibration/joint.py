@@ -54,9 +54,10 @@ import numpy as np
 from scipy.special import chdtrc
 
 from ..errors import CalibrationError
-from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, rotations
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
+from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
 
 __all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_calibrate_from", "joint_information", "pose_chain", "chain_jacobians",
@@ -73,35 +74,11 @@ _THETA_TRUST = 3.0
 _FRESH_STEP = 0.3
 
 
-def _right_jacobian_inv_so3(r) -> np.ndarray:
-    """J_r(r)^-1 (..., 3, 3): inverse right Jacobian of SO(3)."""
-    r = np.asarray(r, dtype=float)
-    th = np.linalg.norm(r, axis=-1)[..., None, None]
-    K = np.zeros(r.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -r[..., 2], r[..., 1], -r[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    coef = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1 + np.cos(ths)) / (2 * ths * np.sin(ths)))
-    return np.eye(3) + 0.5 * K + coef * K @ K
-
-
 def pose_chain(A, X, Z, a, T_SO_nominal):
     """Lens poses of the chain: B_i = Z^-1 A_i P(a_i) X (n, 4, 4) and their pose
     vectors x_i = log(T_SO,nominal^-1 B_i) (n, 6)."""
     B = invert_poses(Z) @ A @ pose_to_matrix(a) @ X
     return B, matrix_to_pose(invert_poses(T_SO_nominal) @ B)
-
-
-def chain_jacobians(B, x, X):
-    """dx_i / d(xi_X, xi_Z, a_i): (n, 6, 6) each (right perturbations; a_i small)."""
-    Minv = np.zeros(x.shape[:-1] + (6, 6))
-    Minv[..., :3, :3] = rotations(x[..., 3:])
-    Minv[..., 3:, 3:] = _right_jacobian_inv_so3(x[..., 3:])
-    dX = Minv
-    dZ = -Minv @ adjoint(invert_poses(B))
-    dA = Minv @ adjoint(invert_poses(X))
-    return dX, dZ, dA
 
 
 @dataclass(frozen=True, eq=False)

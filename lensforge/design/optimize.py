@@ -37,11 +37,12 @@ from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
 from .constraints import Constraints, check_design, require_feasible, working_poses
 from .criteria import check_criterion, criterion_value
 from .design_file import Design, metrics_dict
+from .bench_vars import BenchVariables, CoDesignParameterisation
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
 
 __all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
-           "RobustSpec"]
+           "RobustSpec", "BenchVariables", "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
@@ -105,8 +106,15 @@ class DesignProblem:
 
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
-                 progress: _Progress | None = None, robust: RobustSpec | None = None):
+                 progress: _Progress | None = None, robust: RobustSpec | None = None,
+                 search_quadrature: int | None = None):
         self.bench = bench
+        # the bench the search evaluates on: with search_quadrature, a coarser sub-aperture rule
+        # (co-design: 1 point per lenslet is ~4x faster and moves the CRLB by ~1 %); the returned
+        # design is always checked and scored on ``bench``
+        self.search_quadrature = search_quadrature
+        self.search_bench = bench if search_quadrature is None else bench.replace(
+            sensor={"subaperture_quadrature": int(search_quadrature)})
         self.robust = robust
         self.par = par
         self.criterion = check_criterion(criterion)
@@ -135,21 +143,28 @@ class DesignProblem:
         """
         try:
             lens = self.par.to_lens(p)
+            bench = self.bench_of(p, search=True)
         except LensforgeError as e:
             from .constraints import Feasibility, Violation
 
             return INFEASIBLE * 10, Feasibility(False, (Violation("geometry", np.nan, 0.0, str(e)),), 1e3), None
-        f = check_design(self.bench, lens, self.constraints, self.poses, fast=True)
+        f = check_design(bench, lens, self.constraints, self.poses, fast=True)
         if not f.ok:
             return INFEASIBLE * (1.0 + f.violation), f, None
         S, z0, _ = sensitivity_from_model(f.model, raise_invalid=False)
         if S is None:
             return INFEASIBLE * 2.0, f, None
-        m = metrics_from_S(S, f.model.noise_cov, self.bench, z0, self.weights)
+        m = metrics_from_S(S, f.model.noise_cov, bench, z0, self.weights)
         value = criterion_value(self.criterion, m, self.weights)
         if self.robust is not None and not nominal_only:
-            value = robust_value(self.bench, lens, self.robust, self.criterion, self.weights, nominal=value).cost
+            value = robust_value(bench, lens, self.robust, self.criterion, self.weights, nominal=value).cost
         return value, f, m
+
+    def bench_of(self, p, search: bool = False) -> Bench:
+        """The bench of parameter vector p (the design's bench unless bench variables are free);
+        search: with the search's sub-aperture rule."""
+        base = self.search_bench if search else self.bench
+        return self.par.to_bench(p, base) if isinstance(self.par, CoDesignParameterisation) else base
 
     def __call__(self, u) -> float:
         if self.n_evals >= self.max_evals:
@@ -213,15 +228,15 @@ class DesignProblem:
         )
 
 
-def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
-    """Feasible start u0 and a word on where it came from."""
+def _start_point(prob: DesignProblem, start, rng, start_lens: Lens | None = None) -> tuple[np.ndarray, str]:
+    """Feasible start u0 and a word on where it came from (start_lens: the lens 'paper' starts from)."""
     par = prob.par
     if isinstance(start, str):
         key = start.lower()
         if key not in ("paper", "template", "random"):
             raise ConfigError(f"start: expected 'paper', 'random' or a parameter vector, got {start!r}")
         if key in ("paper", "template"):
-            p = par.from_lens(par.template)
+            p = par.from_lens(start_lens) if start_lens is not None else par.from_lens(par.template)
             if par.in_bounds(p) and prob.evaluate_p(p, nominal_only=True)[0] < INFEASIBLE:
                 return par.to_unit(p), "template"
         return prob.random_feasible_start(rng), "random"
@@ -232,7 +247,7 @@ def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
         raise ConfigError(f"start: vector lies outside the bounds {par.bounds_dict()}")
     cost, f, _ = prob.evaluate_p(p, nominal_only=True)
     if cost >= INFEASIBLE:
-        require_feasible(check_design(prob.bench, par.to_lens(p), prob.constraints), "start design")
+        require_feasible(check_design(prob.bench_of(p), par.to_lens(p), prob.constraints), "start design")
     return par.to_unit(p), "given"
 
 
@@ -383,6 +398,54 @@ DEFAULT_MAX_EVALS = {name: o.default_max_evals for name, o in OPTIMISERS.items()
 _ALIASES = {a: o.name for o in OPTIMISERS.values() for a in o.aliases}
 
 
+# co-design budgets: the lens step on the given bench, then lens and bench jointly (``optimize_design``)
+CODESIGN_LENS_EVALS = 300
+CODESIGN_EVALS = 160
+
+
+def bench_scan(par: CoDesignParameterisation, lens: Lens, constraints: Constraints, criterion: str = "A",
+               weights=(1.0, 1.0), quadrature: int | None = 1, radii_mm=(1.5, 2.0, 2.5, 3.0, 3.5)) -> list[dict]:
+    """The lens on each catalogue expander x pupil radius (other bench variables at the base
+    bench): one row per bench with feasible, the criterion value (inf if infeasible) and the
+    bench. Radii beyond the expanded beam's 1/e^2 radius are skipped (the pupil cannot be lit)."""
+    base = par.base
+    rows = []
+    exps = par.expanders or ("",)
+    for i, name in enumerate(exps):
+        p = par.from_lens(lens, base)
+        names = list(par.names)
+        if "bench.expander" in names:
+            p[names.index("bench.expander")] = float(i)
+        for r in radii_mm:
+            if "bench.pupil_radius_mm" in names:
+                j = names.index("bench.pupil_radius_mm")
+                if not par.lo[j] <= r <= par.hi[j]:
+                    continue
+                p[j] = r
+            try:
+                b = par.to_bench(p, base)
+            except LensforgeError:
+                continue
+            if b.sensor.pupil_radius_mm >= 0.5 * b.laser.beam_diameter_mm:
+                continue
+            sb = b if quadrature is None else b.replace(sensor={"subaperture_quadrature": int(quadrature)})
+            f = check_design(sb, lens, constraints, fast=True)
+            value = np.inf
+            if f.ok:
+                S, z0, _ = sensitivity_from_model(f.model, raise_invalid=False)
+                if S is not None:
+                    value = criterion_value(criterion, metrics_from_S(S, f.model.noise_cov, sb, z0, weights), weights)
+            rows.append({"expander": name or "none", "pupil_radius_mm": float(b.sensor.pupil_radius_mm),
+                         "feasible": bool(np.isfinite(value)), "value": float(value) if np.isfinite(value) else None,
+                         "bench": b})
+            if "bench.pupil_radius_mm" not in names:
+                break
+    for r in rows:
+        if r["value"] is None:
+            r["value"] = np.inf
+    return rows
+
+
 def check_method(method: str) -> str:
     key = str(method).strip().lower()
     key = _ALIASES.get(key, key)
@@ -401,8 +464,21 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
                     start: str | np.ndarray = "paper",
                     n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.1,
                     ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,
-                    template: Lens | None = None, robust: RobustSpec | None = None) -> Design:
+                    template: Lens | None = None, robust: RobustSpec | None = None,
+                    bench_vars: BenchVariables | None = None, lens_evals: int | None = None,
+                    search_quadrature: int | None = None, start_lens: Lens | None = None,
+                    start_bench: Bench | None = None) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
+
+    Co-design (``bench_vars`` with free variables, ``bench_vars.BenchVariables``): the bench
+    around the lens is designed too. Three steps: (1) the lens alone on ``bench``
+    (``lens_evals`` evaluations, default CODESIGN_LENS_EVALS); (2) a scan of the expander
+    catalogue and pupil radii (``bench_scan``) with that lens, the best feasible bench by
+    the criterion; (3) lens and bench variables jointly from there (``max_evals``, default
+    CODESIGN_EVALS). Steps 1-3 search with ``search_quadrature`` points per lenslet side
+    (default 1 when co-designing); the returned design is checked and scored on the full
+    bench. The design's ``bench`` is the co-designed bench, its ``settings.codesign`` says
+    how it was reached.
 
     bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
     'zernike', 'conic'; method: 'nelder-mead', 'pso', 'ga', 'cmaes'; seed: int (same
@@ -432,6 +508,31 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     if len(weights) != 2 or not all(np.isfinite(weights)) or min(weights) < 0 or max(weights) <= 0:
         raise ConfigError(f"weights: expected two finite numbers >= 0, not both 0, got {weights!r}")
     par = parameterisation(model, free=free, bounds=bounds, template=template)
+    codesign = None
+    if bench_vars is not None and bench_vars.free:
+        if robust is not None:
+            raise ConfigError("robust: a tolerance-robust design keeps its bench; use --bench-free none with --robust")
+        q = 1 if search_quadrature is None else int(search_quadrature)
+        n1 = CODESIGN_LENS_EVALS if lens_evals is None else int(lens_evals)
+        first = optimize_design(bench, model=model, method=method, seed=seed, criterion=criterion, weights=weights,
+                                free=free, bounds=bounds, constraints=constraints, max_evals=n1, start=start,
+                                n_starts=n_starts, particles=particles, population=population, sigma0=sigma0,
+                                ftol=ftol, time_limit_s=time_limit_s, progress=progress, template=template,
+                                search_quadrature=q)
+        par = CoDesignParameterisation.build(par, bench_vars, bench)
+        scan = bench_scan(par, first.lens, constraints or Constraints(), criterion=check_criterion(criterion),
+                          weights=weights, quadrature=q)
+        best = min((r for r in scan if r["feasible"]), key=lambda r: r["value"], default=None)
+        start_lens, start_bench = first.lens, (best["bench"] if best is not None else bench)
+        search_quadrature = q
+        codesign = {"lens_evals": first.n_evals, "lens_wall_time_s": first.wall_time_s,
+                    "lens_step_metrics": {k: first.metrics.get(k) for k in ("crlb_std", "criterion_value")},
+                    "scan": [{k: r[k] for k in ("expander", "pupil_radius_mm", "feasible", "value")} for r in scan],
+                    "variables": bench_vars.to_dict(), "search_quadrature": q}
+        if max_evals is None:
+            max_evals = CODESIGN_EVALS
+        if start == "paper":
+            start = "template"
     evals = DEFAULT_MAX_EVALS[meth] if max_evals is None else int(max_evals)
     if evals < par.n + 2:
         raise ConfigError(f"max_evals: {evals} is too small for {par.n} free parameters; use at least {par.n + 2}")
@@ -446,8 +547,15 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     label = f"{meth} {par.model} ({crit}{', robust' if robust is not None else ''})"
     t0 = time.perf_counter()
     with _Progress(progress, evals, label) as prog:
-        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust)
-        u0, start_kind = _start_point(prob, start, rng)
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust,
+                             search_quadrature)
+        if start_bench is not None and isinstance(par, CoDesignParameterisation):
+            u0, start_kind = _start_point(prob, par.from_lens(start_lens or par.template, start_bench)
+                                          if start in ("template", "paper") else start, rng)
+            if start_kind == "given":
+                start_kind = "lens step + bench scan"
+        else:
+            u0, start_kind = _start_point(prob, start, rng, start_lens)
         p_start = par.from_unit(u0)
         start_cost = prob(u0)  # counted, so the start is always a candidate
         opts = {"particles": particles, "population": population, "sigma0": sigma0, "n_starts": int(n_starts)}
@@ -466,13 +574,16 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     for cost, _, u in sorted(prob.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]:
         p_best = par.from_unit(u)
         lens = par.to_lens(p_best).replace(
-            name=f"lensforge {par.model} ({meth}, {crit}{', robust' if robust is not None else ''}, seed {seed})")
-        feas = check_design(bench, lens, constraints, prob.poses, fast=False)
+            name=f"lensforge {par.model} ({meth}, {crit}{', robust' if robust is not None else ''}"
+                 f"{', co-designed bench' if codesign else ''}, seed {seed})")
+        bench_best = prob.bench_of(p_best)
+        feas = check_design(bench_best, lens, constraints, prob.poses, fast=False)
         if feas.ok:
             break
         first_fail = first_fail or feas
     else:
         require_feasible(first_fail, f"optimised {par.model} design")
+    bench = bench_best
     S, z0, _ = sensitivity_from_model(feas.model)
     m = metrics_from_S(S, feas.model.noise_cov, bench, z0, weights)
     nominal_value = criterion_value(crit, m, weights)
@@ -481,6 +592,11 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
         rv = robust_value(bench, lens, robust, crit, weights, nominal=nominal_value)
         robust_record = {**robust.to_dict(), "criterion": crit, **rv.to_dict()}
     settings = {"max_evals": evals, "n_starts": int(n_starts), "ftol": ftol, "time_limit_s": time_limit_s, **info}
+    if search_quadrature is not None:
+        settings["search_quadrature"] = int(search_quadrature)
+    if codesign is not None:
+        settings["codesign"] = codesign
+        wall += codesign["lens_wall_time_s"]
     return Design(
         lens=lens, bench=bench, model=par.model, free=par.names,
         parameters={n: float(v) for n, v in zip(par.names, p_best)}, bounds=par.bounds_dict(),
