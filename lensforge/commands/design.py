@@ -29,7 +29,7 @@ def design(
     model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
     method: str = typer.Option("cmaes", "--method", help="optimiser: cmaes (CMA-ES, default) | nelder-mead | pso | ga (the registry in design/optimize.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
-    criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min)"),
+    criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min) | DS (self-calibration: the joint calibration's bound on Z over a plan designed with the lens, the printed lens a nuisance; slow: minutes per round)"),
     weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
     free: Optional[str] = typer.Option(None, "--free", help="which lens parameters the optimiser may change: 'full' (default for zernike: thickness, both base curvatures, Noll 1-8 per surface), 'paper' (the paper's set), 'base' (zernike only: paper set + base curvatures), or a comma list of names such as thickness,front.coefficients[3]; default: full for zernike, paper for the other models"),
     bounds: Optional[str] = typer.Option(None, "--bounds", help="overrides 'name=lo:hi,...', e.g. thickness=4:8"),
@@ -63,6 +63,9 @@ def design(
     robust_samples: int = typer.Option(8, "--robust-samples", help="as-built draws per candidate (with --robust)"),
     robust_seed: int = typer.Option(0, "--robust-seed", help="seed of the as-built draws, common to all candidates (with --robust)"),
     robust_statistic: str = typer.Option("mean", "--robust-statistic", help="mean | max | mean+std of the criterion over the draws (with --robust)"),
+    selfcal_tolerances: str = typer.Option("default", "--selfcal-tolerances", help="criterion DS: tolerance TOML of the printed lens ('default': the package's)"),
+    selfcal_rounds: int = typer.Option(2, "--selfcal-rounds", help="criterion DS: plan step + lens step rounds"),
+    selfcal_poses: int = typer.Option(24, "--selfcal-poses", help="criterion DS: poses of the plan designed with the lens"),
     out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
@@ -88,6 +91,14 @@ def design(
                           statistic=robust_statistic)
     check_seed(seed)
     check_seed(robust_seed, "--robust-seed")
+    selfcal = None
+    if criterion.strip().upper() == "DS":
+        from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE
+        from ..design.selfcal import SelfCalSpec
+
+        selfcal = SelfCalSpec(load_tolerances(DEFAULT_TOLERANCES_FILE if selfcal_tolerances == "default"
+                                              else selfcal_tolerances), n_poses=selfcal_poses,
+                              plan_mm=plan_mm, plan_rad=math.radians(plan_deg))
     check_output(out, folder=False, option="-o/--out")
     cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
                        range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable,
@@ -96,7 +107,7 @@ def design(
                         free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
                         n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
                         progress=not no_progress and not json_out, robust=spec, bench_vars=bvars,
-                        lens_evals=lens_evals)
+                        lens_evals=lens_evals, selfcal=selfcal, selfcal_rounds=selfcal_rounds)
     path = save_design(d, out)
     if json_out:
         emit_json({"schema_version": 1, "design": str(path), "model": d.model, "method": d.method, "seed": d.seed,
@@ -107,6 +118,14 @@ def design(
     else:
         info(f"wrote {path}  ({d.n_evals} evaluations, {d.wall_time_s:.1f} s)")
         info(f"bench: {bench_label(d.bench)}" + ("  (co-designed)" if bvars.free else ""))
+        sc = d.settings.get("selfcal")
+        if sc:
+            s0, s1 = sc["start_summary"], sc["summary"]
+            info(f"self-calibration bound on Z over its {sc['n_poses']}-pose plan: "
+                 f"{s1['Z_translation_mm'] * 1e3:.1f} um / {s1['Z_rotation_deg'] * 1e3:.2f} mdeg with the printed lens "
+                 f"free ({s1['Z_translation_known_lens_mm'] * 1e3:.1f} um / {s1['Z_rotation_known_lens_deg'] * 1e3:.2f} "
+                 f"mdeg known); the A-optimal start: {s0['Z_translation_mm'] * 1e3:.1f} um / "
+                 f"{s0['Z_rotation_deg'] * 1e3:.2f} mdeg")
         if d.robust is not None:
             r = d.robust
             info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "

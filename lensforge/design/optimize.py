@@ -40,6 +40,7 @@ from .design_file import Design, metrics_dict
 from .bench_vars import BenchVariables, CoDesignParameterisation
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
+from .selfcal import SelfCalSpec, plan_for, selfcal_value
 
 __all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
            "RobustSpec", "BenchVariables", "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
@@ -107,8 +108,9 @@ class DesignProblem:
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
                  progress: _Progress | None = None, robust: RobustSpec | None = None,
-                 search_quadrature: int | None = None):
+                 search_quadrature: int | None = None, selfcal: SelfCalSpec | None = None):
         self.bench = bench
+        self.selfcal = selfcal
         # the bench the search evaluates on: with search_quadrature, a coarser sub-aperture rule
         # (co-design: 1 point per lenslet is ~4x faster and moves the CRLB by ~1 %); the returned
         # design is always checked and scored on ``bench``
@@ -155,7 +157,10 @@ class DesignProblem:
         if S is None:
             return INFEASIBLE * 2.0, f, None
         m = metrics_from_S(S, f.model.noise_cov, bench, z0, self.weights)
-        value = criterion_value(self.criterion, m, self.weights)
+        if self.criterion == "DS":
+            value = selfcal_value(bench, lens, self.selfcal)[0] if not nominal_only else criterion_value("A", m)
+        else:
+            value = criterion_value(self.criterion, m, self.weights)
         if self.robust is not None and not nominal_only:
             value = robust_value(bench, lens, self.robust, self.criterion, self.weights, nominal=value).cost
         return value, f, m
@@ -446,6 +451,53 @@ def bench_scan(par: CoDesignParameterisation, lens: Lens, constraints: Constrain
     return rows
 
 
+def _selfcal_design(bench, model, method, seed, weights, free, bounds, constraints, max_evals, start, progress,
+                    template, bench_vars, lens_evals, search_quadrature, spec, rounds) -> Design:
+    """criterion DS: the A-optimal design (and bench), then rounds of plan step + lens step."""
+    import dataclasses
+
+    if spec is None:
+        raise ConfigError("criterion DS: needs a SelfCalSpec (the tolerance model of the printed lens); "
+                          "CLI: --selfcal-tolerances")
+    if int(rounds) < 1:
+        raise ConfigError(f"selfcal_rounds: need at least 1, got {rounds!r}")
+    codesign = bench_vars is not None and bool(bench_vars.free)
+    d = optimize_design(bench, model=model, method=method, seed=seed, criterion="A", weights=weights, free=free,
+                        bounds=bounds, constraints=constraints, start=start, progress=progress, template=template,
+                        bench_vars=bench_vars, lens_evals=lens_evals, search_quadrature=search_quadrature,
+                        max_evals=None if codesign else lens_evals)
+    q = 1 if search_quadrature is None else int(search_quadrature)  # the DS lens steps search on 1 point/lenslet
+    first_value, first_summary = None, None
+    log = []
+    lens_par = parameterisation(model, free=free, bounds=bounds, template=template)
+    for r in range(int(rounds)):
+        poses = plan_for(d.bench, d.lens, spec)
+        sp = spec.with_poses(poses)
+        value, summary = selfcal_value(d.bench, d.lens, sp)
+        if first_value is None:
+            first_value, first_summary = value, summary
+        p0 = np.clip([d.parameters[n] for n in lens_par.names], lens_par.lo, lens_par.hi)
+        nxt = optimize_design(d.bench, model=model, method=method, seed=seed + r + 1, criterion="DS",
+                              weights=weights, free=free, bounds=bounds, constraints=constraints,
+                              max_evals=max_evals or 40, start=p0, progress=progress, template=template,
+                              search_quadrature=q, selfcal=sp, sigma0=0.03)
+        v_new, s_new = selfcal_value(nxt.bench, nxt.lens, sp)
+        log.append({"round": r + 1, "plan_value": value, "lens_value": v_new,
+                    "Z_translation_mm": s_new["Z_translation_mm"], "Z_rotation_deg": s_new["Z_rotation_deg"],
+                    "Z_translation_known_lens_mm": s_new["Z_translation_known_lens_mm"],
+                    "Z_rotation_known_lens_deg": s_new["Z_rotation_known_lens_deg"], "n_evals": nxt.n_evals})
+        if v_new < value:
+            d = nxt
+    plan = plan_for(d.bench, d.lens, spec)
+    v_final, s_final = selfcal_value(d.bench, d.lens, spec.with_poses(plan))
+    settings = {**d.settings, "selfcal": {"rounds": log, "plan": plan.tolist(), "value": v_final,
+                                          "start_value": first_value, "summary": s_final,
+                                          "start_summary": first_summary, "n_poses": spec.n_poses,
+                                          "plan_mm": spec.plan_mm, "plan_rad": spec.plan_rad}}
+    return dataclasses.replace(d, criterion="DS", settings=settings,
+                               lens=d.lens.replace(name=d.lens.name.replace(", A,", ", DS,")))
+
+
 def check_method(method: str) -> str:
     key = str(method).strip().lower()
     key = _ALIASES.get(key, key)
@@ -467,7 +519,8 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
                     template: Lens | None = None, robust: RobustSpec | None = None,
                     bench_vars: BenchVariables | None = None, lens_evals: int | None = None,
                     search_quadrature: int | None = None, start_lens: Lens | None = None,
-                    start_bench: Bench | None = None) -> Design:
+                    start_bench: Bench | None = None, selfcal: SelfCalSpec | None = None,
+                    selfcal_rounds: int = 2) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
 
     Co-design (``bench_vars`` with free variables, ``bench_vars.BenchVariables``): the bench
@@ -479,6 +532,12 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     (default 1 when co-designing); the returned design is checked and scored on the full
     bench. The design's ``bench`` is the co-designed bench, its ``settings.codesign`` says
     how it was reached.
+
+    Self-calibration criterion (``criterion='DS'``, ``selfcal`` a :class:`SelfCalSpec` with the
+    tolerance model): first the A-optimal design (with its bench, if ``bench_vars`` are free),
+    then ``selfcal_rounds`` rounds of a plan step (``selfcal.plan_for``: the Ds-optimal plan for
+    the current lens) and a lens step (the lens's DS over that plan, ``max_evals`` evaluations,
+    the bench kept); ``settings.selfcal`` holds the plan and the bound per round.
 
     bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
     'zernike', 'conic'; method: 'nelder-mead', 'pso', 'ga', 'cmaes'; seed: int (same
@@ -508,6 +567,9 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     if len(weights) != 2 or not all(np.isfinite(weights)) or min(weights) < 0 or max(weights) <= 0:
         raise ConfigError(f"weights: expected two finite numbers >= 0, not both 0, got {weights!r}")
     par = parameterisation(model, free=free, bounds=bounds, template=template)
+    if check_criterion(criterion) == "DS" and (selfcal is None or selfcal.poses is None):
+        return _selfcal_design(bench, model, method, seed, weights, free, bounds, constraints, max_evals, start,
+                               progress, template, bench_vars, lens_evals, search_quadrature, selfcal, selfcal_rounds)
     codesign = None
     if bench_vars is not None and bench_vars.free:
         if robust is not None:
@@ -548,7 +610,7 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     t0 = time.perf_counter()
     with _Progress(progress, evals, label) as prog:
         prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust,
-                             search_quadrature)
+                             search_quadrature, selfcal)
         if start_bench is not None and isinstance(par, CoDesignParameterisation):
             u0, start_kind = _start_point(prob, par.from_lens(start_lens or par.template, start_bench)
                                           if start in ("template", "paper") else start, rng)
@@ -586,7 +648,7 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     bench = bench_best
     S, z0, _ = sensitivity_from_model(feas.model)
     m = metrics_from_S(S, feas.model.noise_cov, bench, z0, weights)
-    nominal_value = criterion_value(crit, m, weights)
+    nominal_value = selfcal_value(bench, lens, selfcal)[0] if crit == "DS" else criterion_value(crit, m, weights)
     robust_record = None
     if robust is not None:
         rv = robust_value(bench, lens, robust, crit, weights, nominal=nominal_value)
