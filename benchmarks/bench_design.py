@@ -25,6 +25,7 @@ import lensforge as lf  # noqa: E402
 from lensforge.design.compare import compare_rows  # noqa: E402
 from lensforge.design.design_file import save_design  # noqa: E402
 from lensforge.design.optimize import METHODS, optimize_design  # noqa: E402
+from lensforge.fileio import write_atomic  # noqa: E402
 
 MODELS = ("polynomial", "extended_polynomial", "zernike")
 
@@ -94,7 +95,7 @@ def main(argv=None) -> int:
         best = min(METHODS, key=lambda m: designs[(model, m)].metrics["J"])
         d = designs[(model, best)]
         print(f"  {model:<20} {best:<12} J = {d.metrics['J']:.5g} ({d.n_evals} evals, {d.wall_time_s:.1f} s)")
-    lf.optics.bench.write_atomic(out / "summary.json", json.dumps(summary, indent=2, default=str))
+    write_atomic(out / "summary.json", json.dumps(summary, indent=2, default=str))
     return 0
 
 

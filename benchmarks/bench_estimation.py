@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import lensforge as lf  # noqa: E402
-from lensforge.optics.bench import write_atomic  # noqa: E402
+from lensforge.fileio import write_atomic  # noqa: E402
 from lensforge.optics.shack_hartmann import ForwardModel  # noqa: E402
 from lensforge.calibration.initial_poses import InitialPoseModel, prior_covariance  # noqa: E402
 from lensforge.calibration.pose_estimation import UnobservableWarning, estimate_pose_model  # noqa: E402

@@ -88,8 +88,10 @@ def main() -> None:
     have = {o["seed"] for o in done}
     seeds = [s for s in range(a.seed, a.seed + a.sessions) if s not in have]
     outcomes = [o for o in done if a.seed <= o["seed"] < a.seed + a.sessions]
-    with a.jsonl.open("a") as fh, mp.get_context("fork").Pool(a.workers) as pool:
-        for o in pool.imap_unordered(_run, seeds):
+    # --workers 0: in this process (a forked pool aborts when numba's OpenMP threading layer is loaded)
+    pool = mp.get_context("fork").Pool(a.workers) if a.workers > 0 else None
+    with a.jsonl.open("a") as fh:
+        for o in (pool.imap_unordered(_run, seeds) if pool is not None else map(_run, seeds)):
             outcomes.append(o)
             fh.write(json.dumps(o) + "\n")
             fh.flush()
@@ -98,6 +100,8 @@ def main() -> None:
                       f"start {o['start']}", flush=True)
             if len(outcomes) % 10 == 0:
                 print(f"  {len(outcomes)}/{a.sessions} sessions, {time.time() - t0:.0f} s", flush=True)
+    if pool is not None:
+        pool.close()
     print(json.dumps(report(outcomes), indent=1))
 
 

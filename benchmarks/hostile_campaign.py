@@ -11,7 +11,15 @@ slow Ctrl-C (clean, but later than 2 s); unclean Ctrl-C. Parts: A random options
 named nonsense files through every command that reads them, C output targets (under a
 file, onto a folder, read-only and full tmpfs when root), D SIGINT at random moments
 and SIGKILL + resume, E the robot-side inputs (plan, simulate-session, calibrate,
-estimate: spoiled WFS and robot-pose CSVs, robot TOMLs, BOMs). Writes JSON counts to stdout, details of bad attempts to stderr.
+estimate: spoiled WFS and robot-pose CSVs, robot TOMLs, BOMs), F issue 23's cases, each in
+its own process with its wall time and peak memory (wait4): the usual convention mistakes
+on an as-built session through `calibrate` (joint, the default) and `estimate` (exit 3 with the
+likely mistake named, or exit 2 refusing the file and naming it), /dev/zero for every input
+option, memory and time bombs (poses, rows, coefficients, trials), implausible values (reach,
+repeatability, header vs bench, all-zero WFS, degenerate plans, handeye --noise), overwrites,
+and SIGTERM at random moments (exit 143, ``error: terminated``, nothing left behind). A run
+over 60 s of CPU or 1 GB on bad input counts as "slow or big". Writes JSON counts to stdout, details
+of bad attempts to stderr.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ import collections
 import json
 import os
 import random
+import resource
 import signal
 import sqlite3
 import subprocess
@@ -65,6 +74,8 @@ def classify(args, code, err) -> str:
         return "traceback"
     if code == 2 and len(errors) == 1 and err.rstrip().splitlines()[-1].startswith("error:"):
         return "clean exit 2"
+    if code == 3 and len(errors) == 1 and err.rstrip().splitlines()[-1].startswith("error: model check failed"):
+        return "clean exit 3"
     if code == 0 and not errors:
         return "success"
     if code == 1 and args and args[0] == "export" and not errors:
@@ -79,7 +90,7 @@ def record(part, args, outcome, err, nonsense=False):
         outcome = "accepted nonsense"
     counts[outcome] += 1
     counts[f"{part}: {outcome}"] += 1
-    if outcome not in ("success", "clean exit 2", "clean Ctrl-C"):
+    if outcome not in ("success", "clean exit 2", "clean Ctrl-C", "clean exit 3", "clean SIGTERM"):
         bad.append({"part": part, "args": [str(a) for a in args], "outcome": outcome, "stderr": err[-800:]})
 
 
@@ -375,20 +386,253 @@ def part_d(n, rnd: random.Random):
             record("D SIGKILL + resume", a, "success" if ok else "traceback", err)
 
 
+# ----------------------------------------------------------------------------- part F (issue 23)
+
+MAX_S, MAX_BYTES = 60.0, 1e9  # "0 runs over a minute or a GB on bad input"
+
+
+def run_sub(args, cwd, timeout=600):
+    """Run ``python -m lensforge ARGS`` in its own process: (outcome, code, stderr, CPU s, peak bytes).
+    The time is the process tree's CPU time (user + system, from wait4 via RUSAGE_CHILDREN):
+    on a machine shared with other jobs the wall time measures the load, not the command."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    p = _spawn(args, cwd)
+    try:
+        out, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        out, err = p.communicate()
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    dt = (r1.ru_utime + r1.ru_stime) - (r0.ru_utime + r0.ru_stime)
+    peak = r1.ru_maxrss * 1024.0  # the largest child so far
+    return classify(args, p.returncode, err), p.returncode, err, dt, peak
+
+
+_PEAK = [0.0]
+
+
+def record_f(name, args, cwd, expect, words=(), timeout=600):
+    """expect: "refused" (exit 2), "failed check" (exit 3), "refused or failed" (2 or 3), "ok" (exit 0);
+    words: what the error line must say (else: misleading message)."""
+    outcome, code, err, dt, peak = run_sub(args, cwd, timeout)
+    grew = peak > _PEAK[0] + 1.0
+    _PEAK[0] = max(_PEAK[0], peak)
+    line = next((ln for ln in reversed(err.splitlines()) if ln.startswith("error:")), "")
+    ok_codes = {"refused": (2,), "failed check": (3,), "refused or failed": (2, 3), "ok": (0,)}[expect]
+    if outcome in ("clean exit 2", "clean exit 3") and code in ok_codes and not all(w in line for w in words):
+        outcome = "misleading message"
+    elif outcome == "success" and expect != "ok":
+        outcome = "accepted nonsense"
+    elif outcome in ("clean exit 2", "clean exit 3") and code not in ok_codes:
+        outcome = "misleading message"
+    if expect != "ok" and (dt > MAX_S or (grew and peak > MAX_BYTES)):
+        outcome = "slow or big"
+    counts[outcome] += 1
+    counts[f"F {name}: {outcome}"] += 1
+    timing = f"{dt:.1f} s CPU" + (f", peak {peak / 1e9:.2f} GB" if grew else "")
+    print(json.dumps({"F": name, "outcome": outcome, "code": code, "time": timing, "line": line[:300]}),
+          file=sys.stderr, flush=True)
+    if outcome not in ("success", "clean exit 2", "clean exit 3"):
+        bad.append({"part": f"F {name}", "args": [str(a) for a in args], "outcome": outcome, "time": timing,
+                    "stderr": err[-800:]})
+
+
+def part_f(rnd: random.Random, n_signals: int = 8):
+    import numpy as np
+
+    from lensforge.calibration import formats
+    from lensforge.optics.zernike import noll_to_thorlabs
+
+    lens = "extended_polynomial"
+    with tempfile.TemporaryDirectory() as t:
+        t = Path(t)
+        # an as-built session (default tolerances): the joint default method passes on it
+        outcome, code, err, dt, _ = run_sub(["simulate-session", lens, "--seed", "5", "-o", t / "sess"], t)
+        record("F simulate-session (valid)", ["simulate-session"], outcome, err)
+        if outcome != "success":
+            return
+        w_ok, r_ok = t / "sess" / "wfs_zernike.csv", t / "sess" / "robot_poses.csv"
+        poses, wfs = formats.read_robot_poses(r_ok), formats.read_wfs(w_ok)
+        ids, T, z, hdr = poses.ids, poses.T, wfs.zernike, dict(wfs.header)
+
+        def cal(w=w_ok, r=r_ok, design=lens, *extra):
+            return ["calibrate", design, "-m", w, "-r", r, "--no-progress", "-o", t / "cal", *extra]
+
+        def wfile(name, zz, h=None):
+            return _write(t / name, formats.wfs_csv(wfs.ids, zz, hdr if h is None else h))
+
+        record_f("calibrate as given (valid)", cal(), t, "ok")
+        Tm = T.copy()
+        Tm[:, :3, 3] /= 1000.0
+        xyz = np.array([formats.matrix_to_xyzabc(a) for a in T])
+        q = formats.matrix_to_quaternion(T)
+        zn = np.zeros_like(z)
+        for k in range(1, z.shape[1] + 1):
+            zn[:, k - 1] = z[:, noll_to_thorlabs(k) - 1]
+        mistakes = {
+            "quaternion mm under units m": (cal(r=_write(t / "r1.csv", formats.quaternion_csv(ids, T).replace(
+                "# units: mm", "# units: m"))), "refused", ("reach", "# units: m")),
+            "metres under units mm": (cal(r=_write(t / "r2.csv", formats.quaternion_csv(ids, Tm))), "failed check",
+                                      ("read in m",)),
+            "ABC in radians": (cal(r=_write(t / "r3.csv", "pose,X,Y,Z,A,B,C\n" + "\n".join(
+                ",".join([i] + [f"{v:.6f}" for v in r[:3]] + [f"{v:.9f}" for v in np.radians(r[3:])])
+                for i, r in zip(ids, xyz)) + "\n")), "failed check", ("radians",)),
+            "quaternion xyzw": (cal(r=_write(t / "r4.csv", "# units: mm\npose,x,y,z,qw,qx,qy,qz\n" + "\n".join(
+                ",".join([i] + [f"{v:.6f}" for v in a[:3, 3]] + [f"{v:.10f}" for v in qq[[1, 2, 3, 0]]])
+                for i, a, qq in zip(ids, T, q)) + "\n")), "failed check", ("x, y, z, w",)),
+            "WFS in Noll order": (cal(w=wfile("w1.csv", zn)), "failed check", ("Noll order",)),
+            "WFS in waves": (cal(w=wfile("w2.csv", z / 0.532)), "failed check", ("waves",)),
+            "WFS signs flipped": (cal(w=wfile("w3.csv", -z)), "failed check", ("signs",)),
+            "wrong design": (cal(design="zernike"), "refused or failed", ()),
+            "all-zero WFS": (cal(w=wfile("w4.csv", 0 * z)), "refused", ("every coefficient is 0",)),
+            "constant WFS": (cal(w=wfile("w5.csv", np.repeat(z[:1], len(z), 0))), "refused", ("same coefficients",)),
+            "pupil 0.8 vs 0.9 mm": (cal(w=wfile("w6.csv", z, {**hdr, "pupil_radius_mm": 0.8})), "refused",
+                                    ("0.8", "0.9", "--wfs-header")),
+            "633 vs 532 nm": (cal(w=wfile("w7.csv", z, {**hdr, "wavelength_nm": 633.0})), "refused", ("633", "532")),
+            "KUKA poses with --robot ur5e": (cal() + ["--robot", "ur5e"], "refused", ("reach",)),
+            "poses at 1 km": (cal(r=_write(t / "r5.csv", formats.xyzabc_csv(ids, T * np.array(
+                [[1, 1, 1, 1e6], [1, 1, 1, 1e6], [1, 1, 1, 1e6], [1, 1, 1, 1]])))), "refused", ("reach",)),
+            "estimate: WFS in Noll order": (["estimate", lens, "-m", t / "w1.csv", "--pose", wfs.ids[0]],
+                                            "refused or failed", ()),
+            "estimate: wrong design": (["estimate", "polynomial", "-m", w_ok, "--pose", wfs.ids[0]],
+                                       "refused or failed", ()),
+        }
+        for name, (args, expect, words) in mistakes.items():
+            record_f(name, args, t, expect, words)
+        # /dev/zero everywhere a file goes in
+        Z0 = "/dev/zero"
+        zero = {"evaluate": ["evaluate", Z0], "compare": ["compare", Z0], "plot": ["plot", Z0, "-o", t / "p"],
+                "export": ["export", Z0, "--stl", "--no-slicer", "-o", t / "e"],
+                "estimate-study": ["estimate-study", Z0, "--trials", "2", "-o", t / "es"],
+                "estimate -m": ["estimate", lens, "-m", Z0], "calibrate -m": cal(w=Z0), "calibrate -r": cal(r=Z0),
+                "calibrate -r json": cal(r=_symlink(t, Z0, "zero.json")), "handeye": ["handeye", Z0],
+                "handeye --noise": ["handeye", ROOT / "examples" / "handeye_poses.json", "--noise", Z0],
+                "study -t": ["study", lens, "-t", Z0, "-n", "2", "--workers", "0", "-o", t / "st"],
+                "study --pose-plan": ["study", lens, "--pose-plan", Z0, "-n", "2", "--workers", "0", "-o", t / "st"],
+                "budget -t": ["budget", lens, "-t", Z0, "-n", "2", "--workers", "0", "-o", t / "bu"],
+                "evaluate --bench": ["evaluate", lens, "--bench", Z0],
+                "plan --robot": ["plan", lens, "--robot", Z0, "-o", t / "pl"],
+                "simulate-session -t": ["simulate-session", lens, "-t", Z0, "-o", t / "s0"],
+                "design --bench": ["design", "--bench", Z0, "-o", t / "d.json"],
+                "design --robust": ["design", "--robust", Z0, "-o", t / "d.json"]}
+        for name, args in zero.items():
+            record_f(f"/dev/zero {name}", args, t, "refused", ("/dev/zero",))
+        # memory and time bombs
+        big_rows = _write(t / "rows.csv", "pose,X,Y,Z,A,B,C\n" + "\n".join(f"{i},0,-500,1000,0,0,0"
+                                                                          for i in range(100_000)) + "\n")
+        big_design = _write(t / "bigdesign.json", json.dumps({
+            "schema_version": 1, "kind": "lensforge.design", "model": "zernike", "free": [], "parameters": {},
+            "bounds": {}, "lens": {**paper_lens("zernike").to_dict(),
+                                   "front": {**paper_lens("zernike").to_dict()["front"],
+                                             "coefficients": [0.0] * 1_000_000}},
+            "bench": Bench.default().to_dict()}))
+        plan_big = _write(t / "planbig.json", json.dumps({"poses": [[0, 0, 0, 0, 0, 0]] * 100_000}))
+        bombs = {"study --poses 100000": (["study", lens, "--poses", "100000", "-n", "2", "--workers", "0", "-o",
+                                           t / "st"], ("100000",)),
+                 "budget --poses 100000": (["budget", lens, "--poses", "100000", "-n", "2", "--workers", "0", "-o",
+                                            t / "bu"], ("100000",)),
+                 "study --pose-plan 100000 poses": (["study", lens, "--pose-plan", plan_big, "-n", "2", "--workers",
+                                                     "0", "-o", t / "st"], ("100000",)),
+                 "calibrate 100000 rows": (cal(r=big_rows), ("100000",)),
+                 "plan -n 100000": (["plan", lens, "-n", "100000", "-o", t / "pl"], ("100000",)),
+                 "simulate-session -n 100000": (["simulate-session", lens, "-n", "100000", "-o", t / "s1"],
+                                                ("100000",)),
+                 "design with 1e6 coefficients: evaluate": (["evaluate", big_design], ("1000000",)),
+                 "design with 1e6 coefficients: export": (["export", big_design, "--stl", "--no-slicer", "-o",
+                                                           t / "e"], ("1000000",)),
+                 "estimate-study --trials 1e7": (["estimate-study", lens, "--trials", "10000000", "-o", t / "es"],
+                                                 ("10000000",)),
+                 "study --lenses 1e7": (["study", lens, "-n", "10000000", "--workers", "0", "-o", t / "st"],
+                                        ("10000000",))}
+        for name, (args, words) in bombs.items():
+            record_f(f"bomb {name}", args, t, "refused", words)
+        # implausible values
+        robot = (ROOT / "lensforge" / "calibration" / "robots" / "kr10_r1100_sixx.toml").read_text()
+        rb = _write(t / "rep20.toml", robot.replace("repeatability_mm = 0.02", "repeatability_mm = 20.0"))
+        record_f("robot repeatability 20 mm", cal() + ["--robot", rb], t, "refused", ("repeatability_mm",))
+        record_f("plan with repeatability 20 mm", ["plan", lens, "--robot", rb, "-o", t / "pl"], t, "refused",
+                 ("repeatability_mm",))
+        for name, poses_ in (("8 identical poses", [[0.1, 0, 0, 0.01, 0, 0]] * 8),
+                             ("one rotation axis", [[0.1 * i, 0, 0, 0.01 * i, 0, 0] for i in range(8)])):
+            f = _write(t / "plan.json", json.dumps({"poses": poses_}))
+            record_f(f"degenerate plan: {name}", ["study", lens, "--pose-plan", f, "-n", "2", "--workers", "0", "-o",
+                                                  t / "st"], t, "refused", ("degenerate pose plan", "unobservable"))
+        ex = json.loads((ROOT / "examples" / "handeye_poses.json").read_text())
+        bare = {k: v for k, v in ex.items() if k not in ("noise", "cov_A", "cov_B", "sigma_A", "sigma_B")}
+        pf = _write(t / "he.json", json.dumps(bare))
+        for name, noise, expect, words in (
+                ("flat keys (the --help format)", {"robot_sigma_trans_mm": 0.02, "robot_sigma_rot_deg": 0.001,
+                                                   "lens_sigma_trans_mm": 0.002, "lens_sigma_rot_deg": 0.01},
+                 "refused or failed", ()),
+                ("negative sigma", {"robot_sigma_trans_mm": -0.02}, "refused", ("robot_sigma_trans_mm",)),
+                ("sigma 1 km", {"robot_sigma_trans_mm": 1e6}, "refused", ("robot_sigma_trans_mm",)),
+                ("unknown key", {"robot_sigma": 0.02}, "refused", ("unknown key",)),
+                ("all zero", {"robot_sigma_trans_mm": 0.0}, "refused", ("no noise",))):
+            nf = _write(t / "noise.json", json.dumps(noise))
+            if expect == "refused or failed":  # valid: used as given (exit 0, or 3 if the data misfit it)
+                outcome, code, err, dt, _ = run_sub(["handeye", pf, "--noise", nf], t)
+                ok = code in (0, 3) and "noise model given" in err and "Traceback" not in err
+                record("F handeye --noise " + name, ["handeye"], "success" if ok else "accepted nonsense", err)
+            else:
+                record_f(f"handeye --noise {name}", ["handeye", pf, "--noise", nf], t, expect, words)
+        # overwrite protection and temp paths
+        record_f("simulate-session over a session", ["simulate-session", lens, "-o", t / "sess"], t, "refused",
+                 ("--force",))
+        record_f("simulate-session --force", ["simulate-session", lens, "-n", "6", "-o", t / "sess2", "--force"], t,
+                 "ok")
+        # SIGTERM at random moments: exit 143, "error: terminated", nothing left behind
+        cmds = [["study", lens, "-n", "50", "--poses", "8", "--workers", "0", "--no-progress", "-o", "st"],
+                ["export", lens, "--no-slicer", "-o", "ex"], ["estimate-study", lens, "--trials", "500", "-o", "es"],
+                ["simulate-session", lens, "-o", "ss"], cal(r=r_ok)[:-2] + ["-o", "calt"]]
+        for k in range(n_signals):
+            args = rnd.choice(cmds)
+            with tempfile.TemporaryDirectory() as d:
+                p = _spawn(args, d)
+                t0 = time.monotonic()
+                while not mapped(p.pid, "numpy") and p.poll() is None and time.monotonic() - t0 < 60:
+                    time.sleep(0.02)
+                time.sleep(rnd.uniform(0.0, 8.0))
+                if p.poll() is not None:
+                    out, err = p.communicate()
+                    record("F SIGTERM (finished first)", args, classify(args, p.returncode, err), err)
+                    continue
+                ts = time.monotonic()
+                p.send_signal(signal.SIGTERM)
+                try:
+                    out, err = p.communicate(timeout=60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    out, err = p.communicate()
+                dt = time.monotonic() - ts
+                errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
+                clean = p.returncode == 143 and "Traceback" not in err and errors == ["error: terminated"]
+                left = [f for f in os.listdir(d) if f.startswith(".")]
+                half = [f for f in os.listdir(d) if not f.startswith(".") and f not in ("st",)]
+                outcome = "clean SIGTERM" if clean and dt <= 2.0 and not left and not half else "unclean SIGTERM"
+                record("F SIGTERM", [*args, f"dt={dt:.2f}s", f"left={left + half}"], outcome, err)
+
+
+def _symlink(t: Path, target: str, name: str) -> Path:
+    p = t / name
+    if not p.exists():
+        os.symlink(target, p)
+    return p
+
+
 def main_() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--random", type=int, default=200)
     ap.add_argument("--signals", type=int, default=30)
     ap.add_argument("--seed", type=int, default=12)
-    ap.add_argument("--parts", default="ABCDE")
+    ap.add_argument("--parts", default="FEBCAD", help="parts to run, in this order")
     a = ap.parse_args()
     rnd = random.Random(a.seed)
     t0 = time.time()
     parts = {"A": lambda: part_a(a.random, rnd), "B": part_b, "C": part_c, "D": lambda: part_d(a.signals, rnd),
-             "E": part_e}
-    for name, fn in parts.items():
-        if name in a.parts:
-            fn()
+             "E": part_e, "F": lambda: part_f(rnd, max(4, a.signals // 3))}
+    for name in a.parts:
+        if name in parts:
+            parts[name]()
             # the counts so far, one line per part: a campaign stopped by a timeout keeps them
             print(json.dumps({"after_part": name, "outcomes": _totals()}), file=sys.stderr, flush=True)
     for b in bad:

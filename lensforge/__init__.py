@@ -1,10 +1,12 @@
 """lensforge: design, print and verify freeform lenses for Shack-Hartmann pose
 estimation and robot-world-hand-eye calibration.
 
-Public API (``import lensforge as lf``); names resolve lazily so that importing the
-package stays cheap and ``optics`` never pulls in the heavier modules. Type checkers
-see the same names through the ``TYPE_CHECKING`` imports below (the package ships
-``py.typed``).
+Public API (``import lensforge as lf``; documented in docs/api.md, generated from the
+docstrings by docs/make_api.py); names resolve lazily so that importing the package stays
+cheap and ``optics`` never pulls in the heavier modules. ``_EXPORTS`` is the one list of
+names (``__all__`` is built from it); type checkers see the same names through the
+``TYPE_CHECKING`` imports below (the package ships ``py.typed``), which
+tests/test_public_api.py keeps identical to ``_EXPORTS``.
 
 Units: lengths mm, angles rad, Zernike coefficients um of wavefront in Noll order
 (RMS-normalised); the conversions ``noll_to_osa`` / ``noll_to_thorlabs`` / ``to_osa_vector``

@@ -66,8 +66,16 @@ def _is_click_exception(e: BaseException, name: str) -> bool:
 def _os_error_line(e: OSError) -> str:
     """One line for an operating-system error (disk full, read-only folder, path under a file)."""
     import errno
+    import tempfile
 
-    where = e.filename or "output"
+    from .fileio import public_path
+
+    where = public_path(e.filename) if e.filename else "output"
+    tmpdir = os.path.realpath(tempfile.gettempdir())
+    in_tmp = bool(e.filename) and os.path.realpath(str(e.filename)).startswith(tmpdir + os.sep)
+    if in_tmp and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES):
+        return (f"the temporary folder {tmpdir} (TMPDIR) is full or not writable ({e.strerror}); free space there "
+                "or set TMPDIR to a folder with room")
     why = {errno.ENOSPC: "the disk is full; free space or choose another -o/--out",
            errno.EDQUOT: "the disk quota is exhausted; free space or choose another -o/--out",
            errno.EROFS: "the file system is read-only; choose another -o/--out",
@@ -81,14 +89,16 @@ def _os_error_line(e: OSError) -> str:
 
 def main(args: list[str] | None = None) -> None:
     """Entry point: run the app; a user's mistake prints one line ``error: ...`` and exits 2;
-    Ctrl-C prints ``error: interrupted`` and exits 130 (see ``lensforge.interrupts``)."""
+    a fit that fails its model check exits 3 (``errors.ModelCheckError``, diagnostics written);
+    Ctrl-C prints ``error: interrupted`` and exits 130, SIGTERM ``error: terminated`` and 143
+    (see ``lensforge.interrupts``)."""
     with sigint_guard() as interrupted:
         try:
             rc = app(args=args, prog_name="lensforge", standalone_mode=False)
         except Interrupted:
             hard_exit()
         except LensforgeError as e:
-            _fail(interrupted, f"error: {' '.join(str(e).split())}", 2)
+            _fail(interrupted, f"error: {' '.join(str(e).split())}", getattr(e, "exit_code", 2))
         except KeyboardInterrupt:
             hard_exit()
         except OSError as e:
@@ -125,7 +135,9 @@ def main(args: list[str] | None = None) -> None:
 
 
 def _fail(interrupted, line: str, code: int) -> None:
+    from .fileio import public_text
+
     if interrupted():  # an error raised while unwinding from Ctrl-C is the interrupt's
         hard_exit()
-    typer.echo(line, err=True)
+    typer.echo(public_text(line), err=True)
     sys.exit(code)

@@ -1,22 +1,44 @@
 """File I/O shared by every layer: atomic writes and JSON/TOML reads with one clear error.
 
 Sits beside ``errors.py`` at the bottom of the import graph (imports nothing of lensforge
-but the errors), so optics, design, manufacturing, verification and the CLI all use it.
+but the errors and ``interrupts.committing``), so optics, design, manufacturing, verification and the CLI all use it.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 import tomllib
 from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import ConfigError
+from .interrupts import committing
 
 __all__ = ["write_atomic", "read_json", "read_toml", "json_default", "dumps_json", "check_output", "staged_dir",
-           "Staged", "MAX_INPUT_BYTES"]
+           "Staged", "MAX_INPUT_BYTES", "MAX_TABLE_BYTES", "read_bounded", "public_path", "public_text"]
+
+
+_TEMP_NAME = re.compile(r"^\.(.+?)\.(?:[A-Za-z0-9_]{8}\.tmp|old-\d+)$")
+
+
+def public_path(path) -> str:
+    """``path`` as a user should read it: the hidden temporary names of :func:`write_atomic`,
+    :func:`staged_dir` and ``formats.write_bundle`` (``.NAME.xxxxxxxx.tmp``, ``.NAME.old-PID``)
+    replaced by the final NAME, so that no message names an internal temp path."""
+    parts = Path(str(path)).parts
+    return str(Path(*[(m.group(1) if (m := _TEMP_NAME.match(q)) else q) for q in parts])) if parts else str(path)
+
+
+_TEMP_IN_TEXT = re.compile(r"(^|[/\s'\"(])\.([^/\s'\"]+?)\.(?:[A-Za-z0-9_]{8}\.tmp|old-\d+)(?=$|[/\s'\":),])")
+
+
+def public_text(text: str) -> str:
+    """A message with every hidden temporary path component replaced by its final name
+    (see :func:`public_path`)."""
+    return _TEMP_IN_TEXT.sub(lambda m: m.group(1) + m.group(2), text)
 
 
 def write_atomic(path, data: bytes | str) -> Path:
@@ -69,17 +91,36 @@ def read_toml(path, what: str) -> dict:
 
 # Input files are small; a bigger one is not a lensforge file (and would only fill memory).
 MAX_INPUT_BYTES = 256 * 2**20
+# A CSV table of poses or Zernike rows: 2000 rows of 66 modes are ~2 MB; 32 MiB is far beyond any session.
+MAX_TABLE_BYTES = 32 * 2**20
+
+
+def read_bounded(path, what: str, limit: int | None = None) -> bytes:
+    """The bytes of an input file, at most ``limit`` (default ``MAX_INPUT_BYTES``): a bigger
+    file -- or a device that never ends, /dev/zero, /dev/urandom, a FIFO -- is refused after
+    reading limit + 1 bytes, never read whole. ConfigError for a folder or an oversized input;
+    OSError (not found, permission) is the caller's to word."""
+    p = Path(path)
+    limit = MAX_INPUT_BYTES if limit is None else int(limit)
+    if p.is_dir():
+        raise ConfigError(f"{what} {p}: is a folder; give a file")
+    st = p.stat()
+    if st.st_size > limit:
+        raise ConfigError(f"{what} {p}: {st.st_size / 2**20:.0f} MiB is too large for a "
+                          f"lensforge input file (limit {limit / 2**20:.0f} MiB)")
+    with open(p, "rb") as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        kind = "a regular file" if os.path.isfile(p) else "a device or pipe that does not end"
+        raise ConfigError(f"{what} {p}: more than {limit / 2**20:.0f} MiB ({kind}); a lensforge input file is "
+                          "smaller: give the file itself")
+    return data
 
 
 def _read_text(p: Path, what: str) -> str:
     """UTF-8 text of an input file; a leading byte-order mark (Windows editors) is dropped."""
     try:
-        if p.is_dir():
-            raise ConfigError(f"{what} {p}: is a folder; give a file")
-        if p.stat().st_size > MAX_INPUT_BYTES:
-            raise ConfigError(f"{what} {p}: {p.stat().st_size / 2**20:.0f} MiB is too large for a "
-                              f"lensforge input file (limit {MAX_INPUT_BYTES // 2**20} MiB)")
-        data = p.read_bytes()
+        data = read_bounded(p, what)
     except FileNotFoundError:
         raise ConfigError(f"{what} {p}: not found") from None
     except OSError as e:
@@ -178,10 +219,11 @@ def staged_dir(out):
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)
-        if not out.exists():
-            os.rename(tmp, out)
-        else:
-            _merge(tmp, out)
+        with committing():  # all in place or nothing, whatever signal arrives meanwhile
+            if not out.exists():
+                os.rename(tmp, out)
+            else:
+                _merge(tmp, out)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

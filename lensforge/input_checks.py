@@ -37,7 +37,7 @@ from .errors import ConfigError
 
 __all__ = ["Num", "number", "number_array", "check_header", "check_ranges", "flatten",
            "BENCH_RANGES", "LENS_RANGES", "POSE_TRANSLATION", "SCHEMA_VERSION",
-           "MAX_LENSLETS", "DESIGN_KIND"]
+           "MAX_LENSLETS", "DESIGN_KIND", "MAX_SAG_COEFFICIENTS"]
 
 SCHEMA_VERSION = 1
 DESIGN_KIND = "lensforge.design"  # the kind of a design file (design/design_file.py writes it)
@@ -206,6 +206,10 @@ BENCH_RANGES = {
 # hundred per side (ASSUMPTION: 512 x 512 bounds every catalogue part); more would only
 # exhaust memory in the tracer.
 MAX_LENSLETS = 512 * 512
+# Coefficients of one sag term list (Zernike, extended polynomial, polynomial): 231 is every
+# Zernike mode up to radial order 20 (OpticStudio's Zernike Standard Sag allows 231 terms) and
+# every monomial up to degree 20; more is no lens but a memory and time bomb in the tracer.
+MAX_SAG_COEFFICIENTS = 231
 
 # Lens (design / lens JSON): what a printer or a catalogue lens can be.
 LENS_RANGES = {

@@ -37,17 +37,26 @@ import threading
 import time
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "sigint_guard", "hard_exit", "supervise", "descendants", "alive",
-           "EXIT_INTERRUPTED"]
+__all__ = ["Interrupted", "Terminated", "sigint_guard", "committing", "hard_exit", "supervise", "descendants", "alive",
+           "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OUT_OF_MEMORY_LINE"]
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 INTERRUPTED_LINE = "error: interrupted"
+TERMINATED_LINE = "error: terminated"
+OUT_OF_MEMORY_LINE = ("error: out of memory: the system killed the command (SIGKILL) at {gb:.1f} GB; "
+                      "reduce the problem size (lenses, poses, mesh tolerance) or free memory")
+KILLED_LINE = "error: killed by SIGKILL from outside lensforge (not out of memory); run the command again"
 _SUPERVISOR_ENV = "_LENSFORGE_SUPERVISOR"  # set in the supervised child: its supervisor's pid
 REPEAT_S = 0.5  # a second SIGINT this soon after the first is the same press (terminal + forwarded copy)
 
 
 class Interrupted(BaseException):
     """The user pressed Ctrl-C (SIGINT) while a lensforge command ran."""
+
+
+class Terminated(Interrupted):
+    """The process got SIGTERM (``kill``, a scheduler, systemd): unwound like Ctrl-C, exit 143."""
 
 
 def _parent_map() -> dict[int, int]:
@@ -102,58 +111,117 @@ def _write_line(message: str) -> None:
         pass
 
 
-def hard_exit(code: int = EXIT_INTERRUPTED, message: str = INTERRUPTED_LINE) -> None:
+_SIGNAL_EXIT = {EXIT_INTERRUPTED: INTERRUPTED_LINE, EXIT_TERMINATED: TERMINATED_LINE}
+
+
+def hard_exit(code: int | None = None, message: str | None = None) -> None:
     """Print ``message`` on stderr, kill child processes, and end the process now (no atexit).
-    Under :func:`supervise` the interrupt line is left to the supervisor (printed once)."""
+    Default: the line and status of the signal that arrived (Ctrl-C: 130, SIGTERM: 143; see
+    :func:`sigint_guard`). Under :func:`supervise` the signal's line is left to the supervisor
+    (printed once)."""
+    if code is None:
+        code = _last_signal_exit[0]
+    if message is None:
+        message = _SIGNAL_EXIT.get(code, INTERRUPTED_LINE)
     try:
         sys.stdout.flush()
     except Exception:  # pragma: no cover - closed pipe
         pass
-    if not (code == EXIT_INTERRUPTED and message == INTERRUPTED_LINE and _supervised()):
+    if not (_SIGNAL_EXIT.get(code) == message and _supervised()):
         _write_line(message)
     _kill_children()
     os._exit(code)
 
 
+# the exit status of the signal that ended the command (set by the guard's handlers; read by
+# hard_exit() called without arguments). A one-element list: the process has one signal state.
+_last_signal_exit = [EXIT_INTERRUPTED]
+# True once a command's outputs are in place (``committing``): a first Ctrl-C / SIGTERM after that
+# is not an interrupt -- the command only prints what it wrote and ends with status 0
+_committed = [False]
+
+
+@contextmanager
+def committing():
+    """Around the rename that puts a command's outputs in place (``fileio.staged_dir``,
+    ``formats.write_bundle``): SIGINT and SIGTERM wait until it is done, and once it is, the
+    outputs are complete, so a first signal that follows no longer interrupts: the command
+    ends normally (status 0) within the supervisor's grace. Outside the main thread it only
+    runs the block."""
+    main = threading.current_thread() is threading.main_thread()
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs) if main else None
+    try:
+        yield
+        _committed[0] = True
+    finally:
+        if old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 class _State:
-    """Per-guard state (not global: one instance per ``sigint_guard`` call)."""
+    """Per-guard state (one instance per ``sigint_guard`` call)."""
 
     def __init__(self, grace_s: float):
         self.grace_s = grace_s
         self.count = 0
         self.first_t = None
+        self.code = EXIT_INTERRUPTED
+        self.deferred = None  # when a signal arrived after the outputs were committed
 
     def watchdog(self) -> None:
         time.sleep(self.grace_s)
-        hard_exit()
+        hard_exit(self.code)
 
 
 @contextmanager
 def sigint_guard(grace_s: float = 1.2):
-    """Within the block, SIGINT raises :class:`Interrupted`; yields a callable telling whether
-    one arrived. Does nothing outside the main thread (signal handlers live there)."""
+    """Within the block, SIGINT raises :class:`Interrupted` and SIGTERM :class:`Terminated`
+    (unwound the same way, so staged outputs are removed; exit 143 with ``error: terminated``);
+    yields a callable telling whether one arrived. Does nothing outside the main thread (signal
+    handlers live there); SIGINT ignored by the caller (nohup, `cmd &`) stays ignored, and so
+    does an ignored SIGTERM."""
     if (threading.current_thread() is not threading.main_thread()
             or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):  # the caller chose to ignore Ctrl-C (nohup, `cmd &`)
         yield lambda: False
         return
     st = _State(grace_s)
+    _committed[0] = False  # a new command: nothing of it is written yet
 
     def handler(signum, frame):
         now = time.monotonic()
+        if _committed[0] and not st.count:
+            # the outputs are in place: let the command finish (exit 0; see committing()), but not for
+            # longer than the grace, and a second press still ends it
+            if st.deferred is not None and now - st.deferred >= REPEAT_S:
+                hard_exit(EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED)
+            if st.deferred is None:
+                st.deferred = now
+                st.code = EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED
+                _last_signal_exit[0] = st.code
+                threading.Thread(target=st.watchdog, name="lensforge-sigint-watchdog", daemon=True).start()
+            return
         if st.count and now - st.first_t < REPEAT_S:
             return  # the same press delivered twice (terminal and supervisor); already unwinding
         st.count += 1
         if st.count > 1:
-            hard_exit()
+            hard_exit(st.code)
         st.first_t = now
+        st.code = EXIT_TERMINATED if signum == signal.SIGTERM else EXIT_INTERRUPTED
+        _last_signal_exit[0] = st.code
         threading.Thread(target=st.watchdog, name="lensforge-sigint-watchdog", daemon=True).start()
-        raise Interrupted()
+        raise Terminated() if signum == signal.SIGTERM else Interrupted()
 
     old = signal.signal(signal.SIGINT, handler)
+    old_term = signal.getsignal(signal.SIGTERM)
+    if old_term is not signal.SIG_IGN:
+        signal.signal(signal.SIGTERM, handler)
     try:
         yield lambda: st.count > 0
     finally:
         signal.signal(signal.SIGINT, old)
+        if old_term is not signal.SIG_IGN:
+            signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)
 
 
 # ----------------------------------------------------------------------------- supervisor
@@ -218,6 +286,7 @@ def supervise(grace_s: float = 1.5) -> None:
             pass
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, watch)  # nothing lost between fork and wait
     parent = os.getpid()
+    oom_before = _oom_kills()
     try:
         pid = os.fork()
     except OSError:  # pragma: no cover - out of processes: run unsupervised
@@ -228,40 +297,102 @@ def supervise(grace_s: float = 1.5) -> None:
         os.environ[_SUPERVISOR_ENV] = str(parent)
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C now reaches the caller's guard
         return
-    _wait_for_child(pid, watch, grace_s)
+    _wait_for_child(pid, watch, grace_s, oom_before)
 
 
-def _wait_for_child(pid: int, watch: set, grace_s: float) -> None:
+def _cgroup_file(name: str) -> str | None:
+    """Text of this process's cgroup v2 file ``name`` (e.g. memory.events), or None."""
+    try:
+        with open("/proc/self/cgroup") as fh:
+            rel = next((ln.split(":", 2)[2].strip() for ln in fh if ln.startswith("0::")), None)
+        if rel is None:
+            return None
+        with open(f"/sys/fs/cgroup{rel.rstrip('/')}/{name}") as fh:
+            return fh.read()
+    except (OSError, StopIteration, IndexError):
+        return None
+
+
+def _oom_kills() -> int | None:
+    """The cgroup's count of out-of-memory kills (memory.events ``oom_kill``), or None."""
+    text = _cgroup_file("memory.events")
+    if text is None:
+        return None
+    for ln in text.splitlines():
+        k, _, v = ln.partition(" ")
+        if k == "oom_kill" and v.strip().isdigit():
+            return int(v)
+    return None
+
+
+def _memory_total_bytes() -> float:
+    """The memory the command may use: the cgroup's limit, else the machine's RAM."""
+    text = _cgroup_file("memory.max")
+    if text and text.strip().isdigit():
+        return float(text.strip())
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (OSError, ValueError):  # pragma: no cover
+        return float("inf")
+
+
+def _sigkill_line(peak_bytes: float, oom_before: int | None) -> tuple[str, int]:
+    """(message, exit status) for a command killed by SIGKILL: the kernel's out-of-memory
+    killer (the cgroup counted an OOM kill, or the command held over half the memory) is
+    named as a user's problem size (exit 2); any other SIGKILL came from outside (137)."""
+    after = _oom_kills()
+    oom = (oom_before is not None and after is not None and after > oom_before) or \
+        peak_bytes > 0.5 * _memory_total_bytes()
+    if oom:
+        return OUT_OF_MEMORY_LINE.format(gb=peak_bytes / 1e9), 2
+    return KILLED_LINE, 128 + int(signal.SIGKILL)
+
+
+def _wait_for_child(pid: int, watch: set, grace_s: float, oom_before: int | None = None) -> None:
     """The supervisor's loop (never returns)."""
     deadline = None
     first_int = None
+    term = False  # the signal that started the deadline was SIGTERM (status 143, "error: terminated")
     while True:
         try:
-            done, status = os.waitpid(pid, os.WNOHANG)
+            done, status, usage = os.wait4(pid, os.WNOHANG)
         except ChildProcessError:  # pragma: no cover - reaped elsewhere
-            done, status = pid, 0
+            done, status, usage = pid, 0, None
         if done == pid:
             code = os.waitstatus_to_exitcode(status)
-            if code == EXIT_INTERRUPTED or (deadline is not None and code < 0):
-                _write_line(INTERRUPTED_LINE)
-                os._exit(EXIT_INTERRUPTED)
-            if code < 0:  # killed by a signal: end the same way, so the caller sees it
-                signal.signal(-code, signal.SIG_DFL)
-                signal.pthread_sigmask(signal.SIG_UNBLOCK, {-code})
-                os.kill(os.getpid(), -code)
+            if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) or (deadline is not None and code < 0):
+                final = EXIT_TERMINATED if (term or code == EXIT_TERMINATED) else EXIT_INTERRUPTED
+                _write_line(_SIGNAL_EXIT[final])
+                os._exit(final)
+            if code == -signal.SIGKILL:  # SIGKILL cannot be re-raised on us (signal.signal refuses it)
+                peak = (usage.ru_maxrss * 1024.0) if usage is not None else 0.0  # Linux: kB
+                line, rc = _sigkill_line(peak, oom_before)
+                _write_line(line)
+                os._exit(rc)
+            if code < 0:  # killed by another signal: end the same way, so the caller sees it
+                try:
+                    signal.signal(-code, signal.SIG_DFL)
+                    signal.pthread_sigmask(signal.SIG_UNBLOCK, {-code})
+                    os.kill(os.getpid(), -code)
+                except (OSError, ValueError):  # pragma: no cover - an uncatchable signal
+                    pass
                 os._exit(128 - code)  # pragma: no cover - the signal did not end us
             os._exit(code)
         now = time.monotonic()
         if deadline is not None and now >= deadline:
             _kill_tree(pid)
             os.waitpid(pid, 0)  # SIGKILL: soon
-            _write_line(INTERRUPTED_LINE)
-            os._exit(EXIT_INTERRUPTED)
+            final = EXIT_TERMINATED if term else EXIT_INTERRUPTED
+            _write_line(_SIGNAL_EXIT[final])
+            os._exit(final)
         wait = 0.1 if deadline is None else max(0.005, min(0.1, deadline - now))
         info = signal.sigtimedwait(watch, wait)
         if info is None or info.si_signo == signal.SIGCHLD:
             continue
         sig = info.si_signo
+        if sig == signal.SIGTERM and deadline is None:
+            term = True
+            deadline = now + grace_s
         if sig == signal.SIGINT:
             if first_int is not None and now - first_int >= REPEAT_S:  # pressed again: end now
                 _kill_tree(pid)
@@ -269,7 +400,8 @@ def _wait_for_child(pid: int, watch: set, grace_s: float) -> None:
                 continue
             if first_int is None:
                 first_int = now
-                deadline = now + grace_s
+                if deadline is None:
+                    deadline = now + grace_s
         try:
             os.kill(pid, sig)  # the child's guard ignores the copy of a press it already saw
         except ProcessLookupError:  # pragma: no cover - already gone

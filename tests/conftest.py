@@ -59,3 +59,22 @@ def run_cli_inprocess(monkeypatch, capsys, *args):
         code = e.code or 0
     out = capsys.readouterr()
     return code, out.out, out.err
+
+
+@pytest.fixture(scope="session")
+def perfect_sessions(tmp_path_factory):
+    """Five honest bench sessions of the extended-polynomial paper lens exactly as designed (8
+    planned poses, one plan, seeds 100..104), written as a real session's files: a list of
+    {file name: Path} (robot_poses.csv, wfs_zernike.csv, truth.json). Shared by the model-check
+    and mistake tests (issue 23)."""
+    from lensforge.calibration import formats
+    from lensforge.calibration.session import load_design_lens, plan
+    from lensforge.verification.session_sim import simulate_session
+
+    lens, bench = load_design_lens("paper:extended_polynomial")
+    p = plan(lens, bench=bench, n=8, seed=0, tolerances="none")
+    out = []
+    for seed in range(5):
+        s = simulate_session(lens, tolerances=None, seed=100 + seed, bench=bench, session_plan=p)
+        out.append(formats.write_bundle(tmp_path_factory.mktemp(f"session{seed}"), s.files()))
+    return out

@@ -43,11 +43,15 @@ def cli(*args) -> tuple[int, str, str]:
 
 
 def assert_clean(code: int, err: str, allowed=(0, 2)) -> None:
-    """Success, or exit 2 with one ``error:`` line (the last line); never a traceback."""
+    """Success, or exit 2 with one ``error:`` line (the last line), or (where allowed) exit 3 with
+    one ``error: model check failed ...`` line; never a traceback."""
     assert "Traceback" not in err, err[-3000:]
     assert code in allowed, f"exit {code}: {err[-2000:]}"
     errors = [ln for ln in err.splitlines() if ln.startswith("error:")]
-    if code == 2:
+    if code == 3:
+        assert len(errors) == 1 and errors[0].startswith("error: model check failed"), err[-2000:]
+        assert err.rstrip().splitlines()[-1] == errors[0], err[-2000:]
+    elif code == 2:
         assert len(errors) == 1, err[-2000:]
         assert err.rstrip().splitlines()[-1].startswith("error:"), err[-2000:]
         assert len(errors[0]) > len("error: ") + 5, errors[0]
@@ -135,8 +139,45 @@ def poses_file(path, mutate=None):
     return path
 
 
+_SESSION: dict = {}  # the bench commands' session files, built once per test process
+
+
+def session_files() -> dict:
+    """A small honest session of the extended-polynomial lens as designed (6 poses), written
+    once per process into a temporary folder: {robot_poses.csv, wfs_zernike.csv, truth.json}."""
+    if not _SESSION:
+        import tempfile
+
+        from lensforge.calibration import formats
+        from lensforge.calibration.session import load_design_lens, plan
+        from lensforge.verification.session_sim import simulate_session
+
+        lens, bench = load_design_lens(BENCH_LENS)
+        p = plan(lens, bench=bench, n=6, seed=0, tolerances="none")
+        s = simulate_session(lens, tolerances=None, seed=7, bench=bench, session_plan=p)
+        _SESSION.update(formats.write_bundle(tempfile.mkdtemp(prefix="lensforge-hostile-"), s.files()))
+    return _SESSION
+
+
+BENCH_LENS = "extended_polynomial"  # every DOF observable: the bench commands need one
+BENCH_COMMANDS = ("plan", "calibrate", "estimate", "simulate-session", "budget")
+
+
 def base_args(cmd, tmp):
     """A cheap, valid invocation of each command (hostile options are added to it)."""
+    if cmd in ("calibrate", "estimate"):
+        f = session_files()
+        if cmd == "estimate":
+            return [BENCH_LENS, "-m", f["wfs_zernike.csv"], "--pose", "1"]
+        return [BENCH_LENS, "-m", f["wfs_zernike.csv"], "-r", f["robot_poses.csv"], "--method", "two-stage",
+                "--no-progress", "-o", tmp / "cal"]
+    if cmd == "plan":
+        return [BENCH_LENS, "-n", "6", "-t", "none", "-o", tmp / "plan"]
+    if cmd == "simulate-session":
+        return [BENCH_LENS, "-t", "none", "-n", "6", "-o", tmp / "ss"]
+    if cmd == "budget":
+        return [BENCH_LENS, "-n", "2", "--poses", "8", "--workers", "0", "--relative-to-noise", "3",
+                "--no-progress", "-o", tmp / "bu"]
     return {
         "evaluate": ["spherical"],
         "compare": ["spherical"],

@@ -124,7 +124,8 @@ def test_cli_simulate_calibrate_estimate(tmp_path, monkeypatch, capsys):
     Zt, Ze = np.array(truth["Z"]), np.array(out["Z"]["matrix"])
     std = out["Z"]["std"]
     assert np.all(np.abs(Ze[:3, 3] - Zt[:3, 3]) < 5 * np.array([std["tx_mm"], std["ty_mm"], std["tz_mm"]]))
-    assert {p.name for p in cal.iterdir()} == {"calibration.json", "easy_handeye.yaml", "summary.txt", "residuals.png"}
+    assert {p.name for p in cal.iterdir()} == {"calibration.json", "easy_handeye.yaml",
+                                                  "lensforge_calibration.launch.py", "summary.txt", "residuals.png"}
     # one lens pose from one row
     res = run_cli("estimate", LENS, "--measurement", str(sess / "wfs_zernike.csv"), "--pose", "1", "--json")
     assert res.returncode == 0, res.stderr

@@ -12,7 +12,8 @@ import pytest
 
 from conftest import run_cli_inprocess
 
-from lensforge.calibration.session import CALIBRATION_METHODS, calibrate
+from lensforge.calibration.pipeline import METHODS as CALIBRATION_METHODS
+from lensforge.calibration.session import calibrate
 from lensforge.calibration.formats import write_bundle
 from lensforge.optics.pose import invert_poses, matrix_to_pose
 from lensforge.verification.session_sim import NEES_3SIGMA_6DOF, check_sessions, simulate_session
@@ -99,7 +100,8 @@ def test_a_start_that_lights_fewer_poses_loses(session):
     kept must be the one from the cell's nominal X, Z that explains every lit pose, with
     the true Z inside 3 sigma."""
     from lensforge.calibration.session import match_session
-    from lensforge.calibration.session_joint import best_joint_fit, resolve_tolerances
+    from lensforge.asbuilt.tolerances import resolve_tolerances
+    from lensforge.calibration.session_joint import best_joint_fit
     from lensforge.optics.pose import pose_to_matrix
 
     s, paths = session
@@ -116,9 +118,11 @@ def test_a_start_that_lights_fewer_poses_loses(session):
 
 def test_no_tolerance_model_falls_back_to_two_stage(session, monkeypatch, capsys, tmp_path):
     """calibrate -t none: the joint calibration has no lens prior; the two-stage result
-    is returned with the fallback stated on the console and in the JSON."""
+    is returned with the fallback stated on the console and in the JSON. (On this as-built
+    session the two-stage fit fails its model check: --accept-failed-check keeps it.)"""
     _, paths = session
-    d, err = _calibrate_cli(monkeypatch, capsys, paths, tmp_path / "cal", "-t", "none")
+    d, err = _calibrate_cli(monkeypatch, capsys, paths, tmp_path / "cal", "-t", "none", "--accept-failed-check")
+    assert d["valid"] is False
     assert d["method"] == "two-stage" and d["fallback"]["from"] == "joint"
     assert "no tolerance model" in d["fallback"]["reason"]
     assert "fell back to the two-stage pipeline" in err
@@ -128,14 +132,14 @@ def test_no_tolerance_model_falls_back_to_two_stage(session, monkeypatch, capsys
 
 def test_joint_failure_falls_back_to_two_stage(session, monkeypatch):
     """A joint fit that cannot run (CalibrationError) gives the two-stage result, stated."""
-    import lensforge.calibration.session as session_mod
+    import lensforge.calibration.pipeline as pipeline_mod
     from lensforge.errors import CalibrationError
 
     def fail(*a, **k):
         raise CalibrationError("joint calibration: only 2 of 12 poses light the pupil at the start")
 
     _, paths = session
-    monkeypatch.setattr(session_mod, "joint_session", fail)
+    monkeypatch.setattr(pipeline_mod, "joint_session", fail)
     r = calibrate(LENS, paths["wfs_zernike.csv"], paths["robot_poses.csv"])
     assert r.method == "two-stage" and "only 2 of 12" in r.extra["fallback"]["reason"]
     assert r.to_json()["method"] == "two-stage" and "fell back" in r.warnings[0]

@@ -76,12 +76,49 @@ def test_ctrl_c_unwinds_a_responsive_command_and_prints_once():
 
 
 @pytest.mark.parametrize("body, code", [("sys.exit(3)", 3), ("sys.exit(0)", 0),
-                                        ("os.kill(os.getpid(), 15)", -15)])
+                                        ("os.kill(os.getpid(), 1)", -1)])
 def test_exit_status_passes_through(body, code):
     p = _start(body)
     _, err = p.communicate(timeout=60)
     assert p.returncode == code, err
     assert "error:" not in err
+
+
+@pytest.mark.parametrize("to", ["supervisor", "command"])
+def test_sigterm_unwinds_like_ctrl_c(to):
+    """SIGTERM (kill, a batch scheduler): one line 'error: terminated', status 143, and the
+    command unwinds (a staged output's finally block runs) instead of dying in place."""
+    p = _start("import time\n        try:\n            time.sleep(60)\n        finally:\n"
+               "            print('unwound', flush=True)")
+    child = _child_pid(p)
+    time.sleep(0.2)
+    os.kill(p.pid if to == "supervisor" else child, signal.SIGTERM)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 143 and err == "error: terminated\n", err
+    assert "unwound" in out
+
+
+def test_sigkill_of_the_command_is_one_line_not_a_traceback():
+    """signal.signal(SIGKILL, ...) raises OSError: the supervisor once printed a traceback here."""
+    p = _start("os.kill(os.getpid(), 9)")
+    _, err = p.communicate(timeout=60)
+    assert "Traceback" not in err
+    assert err.count("error:") == 1 and err.startswith("error: killed by SIGKILL"), err
+    assert p.returncode == 137
+
+
+def test_oom_kill_is_named_out_of_memory(monkeypatch):
+    """The OOM killer's SIGKILL: 'error: out of memory ...', exit 2 (a problem too large)."""
+    from lensforge import interrupts
+
+    monkeypatch.setattr(interrupts, "_memory_total_bytes", lambda: 8e9)
+    monkeypatch.setattr(interrupts, "_oom_kills", lambda: None)
+    line, rc = interrupts._sigkill_line(6e9, None)
+    assert rc == 2 and line.startswith("error: out of memory") and "6.0 GB" in line
+    line, rc = interrupts._sigkill_line(1e9, None)
+    assert rc == 137
+    monkeypatch.setattr(interrupts, "_oom_kills", lambda: 4)
+    assert interrupts._sigkill_line(1e8, 3)[1] == 2  # the cgroup counted a new OOM kill
 
 
 def test_sigkill_of_the_supervisor_ends_the_command():
@@ -96,3 +133,35 @@ def test_no_supervisor_when_disabled():
     p = _start("sys.exit(0)", LENSFORGE_NO_SUPERVISOR="1")
     out, _ = p.communicate(timeout=60)
     assert int(out) == p.pid and p.returncode == 0
+
+
+def test_a_signal_after_the_outputs_are_committed_does_not_interrupt():
+    """Outputs all or nothing (issue 23): once fileio.staged_dir has renamed them into place, a
+    first Ctrl-C lets the command finish (exit 0) instead of 'error: interrupted' beside a
+    complete output folder; before the commit it interrupts as always."""
+    from lensforge.interrupts import Interrupted, committing, sigint_guard
+
+    with sigint_guard(grace_s=30) as interrupted:
+        with pytest.raises(Interrupted):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+    with sigint_guard(grace_s=30) as interrupted:
+        with committing():
+            os.kill(os.getpid(), signal.SIGINT)  # blocked during the rename, delivered after it
+        time.sleep(0.2)
+        assert not interrupted()
+
+
+def test_staged_output_is_complete_or_absent_under_sigterm(tmp_path):
+    """SIGTERM while a staged folder is being filled: the command unwinds, exit 143, and neither the
+    output folder nor a hidden temporary one is left."""
+    body = ("from lensforge.fileio import staged_dir\n        import time, pathlib\n"
+            f"        with staged_dir(pathlib.Path({str(tmp_path / 'out')!r})) as st:\n"
+            "            (st.tmp / 'a.txt').write_text('x')\n            time.sleep(60)")
+    p = _start(body)
+    _child_pid(p)
+    time.sleep(0.5)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143 and err == "error: terminated\n", err
+    assert os.listdir(tmp_path) == []

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import lensforge as lf
-from lensforge.manufacturing.prescription import (format_prescription, lens_conventions, opticstudio_prescription,
-                                                  optiland_model, write_optiland)
+from lensforge.manufacturing.prescription import (format_prescription, opticstudio_prescription, optiland_model,
+                                                  write_optiland)
+from lensforge.optics.lens import lens_conventions
 from lensforge.optics.surfaces import Conic, ExtendedPolynomial, ZernikeSag, extended_monomial_exponents
 from lensforge.optics.trace import trace_rays
 

@@ -67,3 +67,46 @@ def test_zernike_and_pose_helpers_at_top_level_round_trip():
     np.testing.assert_allclose(lf.matrix_to_pose(lf.pose_to_matrix(x)), x, atol=tol)
     T = lf.pose_to_matrix(x)
     np.testing.assert_allclose(lf.invert_poses(T) @ T, np.eye(4), atol=tol)
+
+
+def test_no_module_re_exports_another_modules_names():
+    """A module's __all__ lists what it defines: a function or class named there lives there
+    (an importer goes to the defining module; only the package's lazy top level gathers names)."""
+    import importlib
+    import pkgutil
+
+    found = []
+    for m in pkgutil.walk_packages(lf.__path__, "lensforge."):
+        if m.name.endswith("__main__"):
+            continue
+        mod = importlib.import_module(m.name)
+        for name in getattr(mod, "__all__", ()):
+            if not hasattr(mod, name):
+                found.append(f"{mod.__name__}.{name} (listed in __all__, not defined)")
+                continue
+            obj = getattr(mod, name)
+            if (inspect.isfunction(obj) or inspect.isclass(obj)) and obj.__module__ != mod.__name__:
+                found.append(f"{mod.__name__}.{name} (defined in {obj.__module__})")
+    for mod_name, name in (("lensforge.optics.bench", "write_atomic"), ("lensforge.calibration.session", "SCHEMA_VERSION")):
+        if name in importlib.import_module(mod_name).__all__:
+            found.append(f"{mod_name}.{name}")
+    assert not found, found
+
+
+def test_type_checking_imports_are_exactly_the_lazy_exports():
+    """lensforge/__init__.py's one source of names is ``_EXPORTS`` (``__all__`` is built from it);
+    the TYPE_CHECKING imports that type checkers read must name the same objects from the same
+    modules, no more and no fewer."""
+    import ast
+
+    src = Path(lf.__file__).read_text()
+    tree = ast.parse(src)
+    block = next(n for n in tree.body if isinstance(n, ast.If) and ast.unparse(n.test) == "TYPE_CHECKING")
+    seen = {}
+    for node in block.body:
+        assert isinstance(node, ast.ImportFrom) and node.level == 1, ast.unparse(node)
+        for alias in node.names:
+            assert alias.asname is None, ast.unparse(node)
+            seen[alias.name] = f"lensforge.{node.module}"
+    assert seen == lf._EXPORTS
+    assert sorted(lf.__all__) == sorted([*lf._EXPORTS, "__version__"])

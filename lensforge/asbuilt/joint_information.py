@@ -22,23 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..optics.pose import adjoint, invert_poses, rotations
+from ..optics.pose import adjoint, invert_poses, right_jacobian_inv_so3, rotations
 
-__all__ = ["right_jacobian_inv_so3", "chain_jacobians", "pose_information", "theta_prior", "z_ds", "z_sigma",
+__all__ = ["chain_jacobians", "pose_information", "theta_prior", "z_ds", "z_sigma",
            "select_ds"]
-
-
-def right_jacobian_inv_so3(r) -> np.ndarray:
-    """J_r(r)^-1 (..., 3, 3): inverse right Jacobian of SO(3) for rotation vectors r (..., 3)."""
-    r = np.asarray(r, dtype=float)
-    th = np.linalg.norm(r, axis=-1)[..., None, None]
-    K = np.zeros(r.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -r[..., 2], r[..., 1], -r[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    coef = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1 + np.cos(ths)) / (2 * ths * np.sin(ths)))
-    return np.eye(3) + 0.5 * K + coef * K @ K
 
 
 def chain_jacobians(B, x, X):

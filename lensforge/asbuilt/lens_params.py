@@ -190,12 +190,6 @@ class LensParameterisation:
         ``lens_tangents``)."""
         return lens_tangents(self.build, np.asarray(theta, dtype=float), np.eye(self.k), wavelength_nm)
 
-    def project(self, p) -> np.ndarray:
-        """theta of the elementary deviations p (least squares in prior-scaled units)."""
-        q = (np.asarray(p, dtype=float) - self.space.mean)
-        scaled = np.divide(q, self.space.sigma, out=np.zeros_like(q), where=self.space.sigma > 0)
-        return self.V.T @ scaled
-
     def describe(self, i: int, n_terms: int = 3) -> str:
         """The largest elementary components of direction i, e.g. '0.71 front_Z4_mm - 0.70 back_Z4_mm'."""
         v = self.V[:, i]

@@ -27,9 +27,12 @@ Adding a component touches one place, the registry ``COMPONENT_SPECS``: one
 :class:`ToleranceComponent` holds its TOML table (each :class:`ToleranceField` with
 its default and where it comes from, its kind and validation range with the unit,
 whether the budget's scale factor multiplies it), its draw, its effect on the
-as-built lens and the budget table's size column. The :class:`Tolerances` dataclass
-(one attribute per field), the TOML reader/writer, the input ranges
-(``TOLERANCE_RANGES``) and the sampler are all built from the registry.
+as-built lens and the budget table's size column. The TOML reader/writer, the input
+ranges (``TOLERANCE_RANGES``) and the sampler are all built from the registry. The
+:class:`Tolerances` dataclass declares one typed attribute per field (so that type
+checkers see float, int, tuple, not Any: the package ships ``py.typed``), each taking
+its default from the registry; the module checks at import that the two agree, and the
+check's message gives the lines a new component adds.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from __future__ import annotations
 from os import PathLike
 
 import math
-from dataclasses import dataclass, field, fields, make_dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -52,7 +55,8 @@ from ..optics.materials import Material
 from ..optics.surfaces import CanonicalSurface, Freeform, add_monomials
 from ..optics.zernike import zernike_monomials
 
-__all__ = ["Tolerances", "load_tolerances", "save_tolerances", "sample_as_built", "scale_canonical",
+__all__ = ["Tolerances", "load_tolerances", "save_tolerances", "resolve_tolerances", "no_tolerance_model",
+           "sample_as_built", "scale_canonical",
            "COMPONENTS", "COMPONENT_SPECS", "ToleranceComponent", "ToleranceField", "AsBuiltState",
            "TOLERANCE_RANGES", "DEFAULT_TOLERANCES_FILE"]
 
@@ -479,20 +483,129 @@ class _ToleranceMethods:
         return save_tolerances(self, path)
 
 
-Tolerances = make_dataclass(
-    "Tolerances", [(a, Any, field(default=f.default)) for a, f in _FIELDS.items()], bases=(_ToleranceMethods,),
-    frozen=True, namespace={"__module__": __name__, "__doc__": (
-        "As-built tolerances (lengths mm; 1-sigma values): one attribute per field of the registry "
-        "``COMPONENT_SPECS`` (its comments say where each default comes from).\n\n"
-        "None in the index and shrinkage fields means \"the lens material's value\" "
-        "(Material.index_sigma, batch_sigma, shrinkage, shrinkage_sigma), multiplied by "
-        "index_factor / shrinkage_factor.")})
+def _default(attr: str):
+    """The registry's default of field ``attr`` (the registry is the one place defaults live)."""
+    return field(default=_FIELDS[attr].default)
+
+
+@dataclass(frozen=True)
+class Tolerances(_ToleranceMethods):
+    """As-built tolerances (lengths mm; 1-sigma values): one attribute per field of the registry
+    ``COMPONENT_SPECS``, in its order, with its default (its comments say where each default
+    comes from; the module checks at import that these fields are the registry's).
+
+    None in the index and shrinkage fields means "the lens material's value"
+    (Material.index_sigma, batch_sigma, shrinkage, shrinkage_sigma), multiplied by
+    index_factor / shrinkage_factor.
+
+    Parameters
+    ----------
+    polish_depth_mm, polish_depth_sigma_mm : float
+        Mean and sd of the uniform removal per polished surface, mm.
+    polish_rolloff_mm, polish_rolloff_sigma_mm : float
+        Mean and sd of the extra removal at the clear-aperture edge, mm.
+    polish_rolloff_power : int
+        Even power of the roll-off's radial profile (r / R_a)^power.
+    polished_surfaces : tuple of str
+        The polished sides, a subset of ("front", "back").
+    form_rms_mm : float
+        Total RMS form error per surface, mm.
+    form_modes : tuple of int
+        Noll modes (RMS-normalised over the clear aperture) carrying the form error.
+    thickness_mean_mm, thickness_sigma_mm : float
+        Mean and sd of the centre-thickness error, mm.
+    index_mean : float
+        Refractive-index offset (absolute).
+    index_sigma, index_batch_sigma : float or None
+        Index sd (absolute) and batch-to-batch sd; None: the material's.
+    index_factor : float
+        Multiplies the material-derived index sds.
+    shrinkage_mean, shrinkage_sigma : float or None
+        Linear cure shrinkage mean and sd (fraction); None: the material's.
+    shrinkage_factor : float
+        Multiplies the material-derived shrinkage values.
+    ripple_amplitude_mm, ripple_period_mm : float
+        Layer-ripple amplitude and period on unpolished surfaces, mm.
+    """
+
+    polish_depth_mm: float = _default("polish_depth_mm")
+    polish_depth_sigma_mm: float = _default("polish_depth_sigma_mm")
+    polish_rolloff_mm: float = _default("polish_rolloff_mm")
+    polish_rolloff_sigma_mm: float = _default("polish_rolloff_sigma_mm")
+    polish_rolloff_power: int = _default("polish_rolloff_power")
+    polished_surfaces: tuple[str, ...] = _default("polished_surfaces")
+    form_rms_mm: float = _default("form_rms_mm")
+    form_modes: tuple[int, ...] = _default("form_modes")
+    thickness_mean_mm: float = _default("thickness_mean_mm")
+    thickness_sigma_mm: float = _default("thickness_sigma_mm")
+    index_mean: float = _default("index_mean")
+    index_sigma: float | None = _default("index_sigma")
+    index_batch_sigma: float | None = _default("index_batch_sigma")
+    index_factor: float = _default("index_factor")
+    shrinkage_mean: float | None = _default("shrinkage_mean")
+    shrinkage_sigma: float | None = _default("shrinkage_sigma")
+    shrinkage_factor: float = _default("shrinkage_factor")
+    ripple_amplitude_mm: float = _default("ripple_amplitude_mm")
+    ripple_period_mm: float = _default("ripple_period_mm")
+
+
+def _check_fields_match_registry() -> None:
+    """Tolerances' typed fields are exactly the registry's, in its order (a component added
+    to COMPONENT_SPECS adds its lines above; this names them)."""
+    have = [f.name for f in fields(Tolerances)]
+    if have != list(_FIELDS):
+        missing = [a for a in _FIELDS if a not in have]
+        raise RuntimeError("Tolerances' fields differ from COMPONENT_SPECS: declare, in the registry's order, "
+                           + "; ".join(f'{a}: <type> = _default("{a}")' for a in missing)
+                           + (f" and remove {sorted(set(have) - set(_FIELDS))}" if set(have) - set(_FIELDS) else ""))
+
+
+_check_fields_match_registry()
 
 
 def load_tolerances(path: str | PathLike[str]) -> Tolerances:
-    """Tolerances from a TOML file (missing keys keep the documented defaults)."""
+    """Tolerances from a TOML file (``kind = "lensforge.tolerances"``); missing keys keep the
+    documented defaults.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The TOML file (layout of ``asbuilt/tolerances-default.toml``).
+
+    Returns
+    -------
+    Tolerances
+        The validated tolerances (lengths mm).
+
+    Raises
+    ------
+    ConfigError
+        An unknown table or key, a wrong type, or a value outside its range (the message
+        names the file, field and unit).
+    """
     p = Path(path)
     return Tolerances.from_dict(read_toml(p, "tolerances file"), where=f"tolerances file {p.name}")
+
+
+
+def no_tolerance_model(spec) -> bool:
+    """True for None or "none" (any case): the lens as designed, no as-built model."""
+    return spec is None or (isinstance(spec, str) and spec.strip().lower() == "none")
+
+
+def resolve_tolerances(spec) -> tuple[Tolerances | None, str]:
+    """(Tolerances or None, label) of what a user or a caller may name a tolerance model:
+    a Tolerances, "default" (the package's file), a TOML path, or None / "none" (the lens
+    exactly as designed: None, label "none"). The label is what results record."""
+    if no_tolerance_model(spec):
+        return None, "none"
+    if isinstance(spec, Tolerances):
+        return spec, "given Tolerances"
+    if isinstance(spec, str) and spec == "default":
+        return load_tolerances(DEFAULT_TOLERANCES_FILE), str(DEFAULT_TOLERANCES_FILE)
+    if isinstance(spec, (str, PathLike)):
+        return load_tolerances(spec), str(Path(spec))
+    raise ConfigError(f"tolerances: expected a Tolerances, 'default', 'none' or a TOML path, got {type(spec).__name__}")
 
 
 def save_tolerances(tol: Tolerances, path) -> Path:
@@ -522,10 +635,27 @@ def scale_canonical(cs: CanonicalSurface, s: float) -> CanonicalSurface:
 def sample_as_built(lens: Lens, tolerances: Tolerances, rng: np.random.Generator, validate: bool = True) -> Lens:
     """One as-built lens drawn from the tolerance model (see the module notes).
 
-    Returns a Lens (changed surfaces become Freeform surfaces holding the perturbed
-    canonical form) that the tracer uses like any other; with zero tolerances the
-    nominal lens itself. validate: run Lens.validate() on the draw (about 10 ms;
-    raises LensGeometryError if the draw is not a physical lens).
+    Parameters
+    ----------
+    lens : Lens
+        The nominal lens.
+    tolerances : Tolerances
+        The tolerance model (material-derived values are filled from the lens's material).
+    rng : numpy.random.Generator
+        Source of the draws (a fixed number in a fixed order, whatever the values).
+    validate : bool
+        Run ``Lens.validate()`` on the draw (about 10 ms).
+
+    Returns
+    -------
+    Lens
+        The as-built lens: changed surfaces become Freeform surfaces holding the perturbed
+        canonical form; with zero tolerances the nominal lens itself.
+
+    Raises
+    ------
+    LensGeometryError
+        With ``validate``, a draw that is not a physical lens.
     """
     if not isinstance(rng, np.random.Generator):
         raise ConfigError("rng: pass a numpy Generator, e.g. np.random.default_rng(seed)")

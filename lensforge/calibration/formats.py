@@ -38,6 +38,19 @@ WFS measurements (Zernike coefficients of the wavefront in um of OPD):
   "pupil_center_mm", "pupil_radius_mm", "measurements": [{"pose": ID,
   "zernike": [Z1..ZK]}]}``.
 
+- ``thorlabs_export``: a folder or a glob of the Thorlabs WFS software's own export
+  files, one per pose, the pose id the last integer in each file name (or a pattern);
+  modes by their explicit Order/Frequency; wavelength and pupil checked against the
+  bench (a contradiction is an error naming both). Layout and the instrument settings
+  that give a usable file: ``calibration.thorlabs``.
+- ``spot_field``: a folder or glob of SDK spot-deviation fields (pixels, [Y][X], NaN =
+  no spot, with the MLA data), CSV or NPZ, one per pose (``calibration.thorlabs``);
+  calibrated on the per-lenslet slopes (``calibration.measurement``).
+  A file whose tilt modes (or mean spot deviation) are zero in every pose was taken
+  with tilt cancel ON and is refused, naming the setting.
+
+Robot poses also come as KUKA ``$POS_ACT`` logs (``kuka_log``, format ``kuka_log``).
+
 Plans (``PLAN_WRITERS``): ``csv`` (xyzabc_csv), ``json`` (json_4x4), ``krl`` (a
 KUKA KRL ``.src``/``.dat`` pair, see ``krl_program``).
 """
@@ -51,12 +64,17 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
-from ..fileio import dumps_json, read_json, write_atomic
+from ..interrupts import committing
+from ..fileio import MAX_TABLE_BYTES, dumps_json, read_bounded, read_json, write_atomic
+
+if TYPE_CHECKING:
+    from .thorlabs import SpotFields
 
 __all__ = [
     "xyzabc_to_matrix", "matrix_to_xyzabc", "quaternion_to_matrix", "matrix_to_quaternion",
@@ -123,12 +141,14 @@ def matrix_to_quaternion(T) -> np.ndarray:
 @dataclass(frozen=True, eq=False)
 class PoseTable:
     """Poses by id: ids (n,) strings, T (n, 4, 4) in mm, source (file name), rows (n,)
-    line numbers in the source (for messages)."""
+    line numbers in the source (for messages); times: (n,) s of a robot log matched to the
+    WFS files by time (``kuka_log``), else None."""
 
     ids: tuple
     T: np.ndarray
     source: str = ""
     rows: tuple = ()
+    times: np.ndarray | None = None  # (n,) record times (s) of a log without ids (kuka_log)
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,8 +171,8 @@ class WfsData:
 
 
 def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_text(encoding="utf-8-sig")  # a UTF-8 BOM (Excel, Notepad) is not data
+    try:  # bounded: /dev/zero or a huge file is refused, not read whole (fileio.MAX_TABLE_BYTES)
+        return read_bounded(path, what, MAX_TABLE_BYTES).decode("utf-8-sig")  # a UTF-8 BOM (Excel) is not data
     except FileNotFoundError:
         raise ConfigError(f"{what} {path}: not found") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -334,7 +354,17 @@ def read_json_4x4(path) -> PoseTable:
     return PoseTable(tuple(ids), _check_rotations(path, T, nos), str(path), tuple(nos))
 
 
-POSE_READERS = {"xyzabc_csv": read_xyzabc_csv, "quaternion_csv": read_quaternion_csv, "json_4x4": read_json_4x4}
+def _read_kuka_log(path) -> PoseTable:
+    from .kuka_log import read_kuka_log
+
+    path = Path(path)
+    d = read_kuka_log(path)
+    _check_range(path, d["xyzabc"][:, 3:], d["rows"], ["A", "B", "C"], MAX_ANGLE_DEG, "deg")
+    return PoseTable(d["ids"], xyzabc_to_matrix(d["xyzabc"]), str(path), d["rows"], times=d["times"])
+
+
+POSE_READERS = {"xyzabc_csv": read_xyzabc_csv, "quaternion_csv": read_quaternion_csv, "json_4x4": read_json_4x4,
+                "kuka_log": _read_kuka_log}
 
 
 def _sniff_pose_format(path: Path) -> str:
@@ -344,13 +374,36 @@ def _sniff_pose_format(path: Path) -> str:
     for line in text.splitlines():
         s = line.strip().lower()
         if s and not s.startswith("#"):
+            cols = [c.strip().lstrip("$") for c in s.replace(";", ",").split(",")]
+            if "pos_act" in cols or "time" in cols or "timestamp" in cols or ("s" in cols and "t" in cols) \
+                    or (cols and cols[0] != "pose" and "x" in cols):
+                return "kuka_log"
             return "quaternion_csv" if "qw" in s else "xyzabc_csv"
     raise ConfigError(f"{path}: empty robot poses file")
 
 
 def read_robot_poses(path: str | os.PathLike[str], fmt: str | None = None) -> PoseTable:
-    """Robot flange poses ^W T_E (mm) by id; fmt a POSE_READERS name, or None to detect
-    it (.json -> json_4x4; a CSV header with qw -> quaternion_csv, else xyzabc_csv)."""
+    """Robot flange poses ^W T_E by pose id.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV ``pose,X,Y,Z,A,B,C`` (mm, degrees, KUKA R = Rz(A) Ry(B) Rx(C)), a CSV
+        ``pose,x,y,z,qw,qx,qy,qz`` with a ``# units:`` line, or JSON 4x4.
+    fmt : str, optional
+        A ``POSE_READERS`` name, or None to detect it (.json -> json_4x4; a CSV header with
+        qw -> quaternion_csv, else xyzabc_csv).
+
+    Returns
+    -------
+    PoseTable
+        ``ids`` (n,) strings, ``T`` (n, 4, 4) mm, ``source``, ``rows`` (line numbers).
+
+    Raises
+    ------
+    ConfigError
+        A bad file (one line naming the file, row and field).
+    """
     path = Path(path)
     fmt = fmt or _sniff_pose_format(path)
     if fmt not in POSE_READERS:
@@ -427,7 +480,11 @@ def read_wfs_csv(path) -> WfsData:
             raise ConfigError(f"{path}: row {no}: {len(f) - 1} Zernike modes, expected {k} (as in the header)")
     ids, z, nos = _numeric_rows(path, rows, ["pose"] + [f"Z{i}" for i in range(1, k + 1)])
     _check_range(path, z, nos, [f"Z{i}" for i in range(1, k + 1)], MAX_ZERNIKE_UM, "um")
-    return WfsData(tuple(ids), z, order, _wfs_header(path, comments), str(path), tuple(nos))
+    header = _wfs_header(path, comments)
+    from .thorlabs import check_tilt_not_cancelled
+
+    check_tilt_not_cancelled(z[:, 1:3], str(path), "Zernike tilt modes Z2, Z3")
+    return WfsData(tuple(ids), z, order, header, str(path), tuple(nos))
 
 
 def read_wfs_json(path) -> WfsData:
@@ -462,15 +519,80 @@ def read_wfs_json(path) -> WfsData:
     return WfsData(tuple(ids), z, order, _wfs_header(path, comments), str(path), tuple(nos))
 
 
-WFS_READERS = {"wfs_csv": read_wfs_csv, "wfs_json": read_wfs_json}
+def _read_thorlabs_exports(path, pattern=None):
+    from .thorlabs import read_export_folder
+
+    d = read_export_folder(path, pattern)
+    return WfsData(d["ids"], d["zernike"], d["order"], d["header"], d["source"], d["rows"])
 
 
-def read_wfs(path: str | os.PathLike[str], fmt: str | None = None) -> WfsData:
-    """WFS measurements by id; fmt a WFS_READERS name or None (by extension: .json -> wfs_json)."""
+def _read_spot_fields(path, pattern=None):
+    from .thorlabs import read_spot_fields
+
+    return read_spot_fields(path, pattern)
+
+
+# name -> reader(path[, pattern]); the folder/glob readers take the pose-id pattern
+WFS_READERS = {"wfs_csv": read_wfs_csv, "wfs_json": read_wfs_json, "thorlabs_export": _read_thorlabs_exports,
+               "spot_field": _read_spot_fields}
+_PER_POSE_READERS = ("thorlabs_export", "spot_field")
+
+
+def _sniff_wfs_format(path: Path) -> str:
+    from .thorlabs import expand_measurements, read_text_any
+
+    files = expand_measurements(path)
+    first = files[0] if files else path
+    if first.suffix.lower() == ".npz":
+        return "spot_field"
+    if first.suffix.lower() == ".json":
+        return "wfs_json"
+    text = read_text_any(first, "WFS measurements file")
+    if "***" in text:
+        return "thorlabs_export"
+    if any(line.strip().lower().replace(" ", "").startswith("iy,ix") for line in text.split("\n")[:200]):
+        return "spot_field"
+    if files:
+        raise ConfigError(f"{path}: {first.name} is neither a Thorlabs WFS export (*** ZERNIKE FIT *** section) "
+                          "nor a spot field (iy,ix,dx_px,dy_px); a folder holds one such file per pose")
+    return "wfs_csv"
+
+
+def read_wfs(path: str | os.PathLike[str], fmt: str | None = None,
+             pose_pattern: str | None = None) -> WfsData | SpotFields:
+    """WFS measurements by pose id.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A CSV (one row per pose id, Zernike um in Thorlabs order, mode k = OSA j + 1), a JSON,
+        or a folder or glob of Thorlabs WFS exports (``*** ... ***`` sections) or of spot
+        fields (.npz, or a CSV with an ``iy,ix,dx_px,dy_px`` header), one file per pose with
+        the pose id from the file name (``thorlabs.pose_id_from_name``).
+    fmt : str, optional
+        A ``WFS_READERS`` name, or None to detect it.
+    pose_pattern : str, optional
+        A regular expression whose first group is the pose id in a file name (default: its
+        last integer).
+
+    Returns
+    -------
+    WfsData or thorlabs.SpotFields
+        ``ids`` (n,), ``zernike`` (n, K) um in Thorlabs order (piston first), ``order`` and
+        the header (wavelength_nm, pupil_center_mm, pupil_radius_mm where given); spot fields
+        for per-lenslet files.
+
+    Raises
+    ------
+    ConfigError
+        A bad file (one line naming the file, row and field).
+    """
     path = Path(path)
-    fmt = fmt or ("wfs_json" if path.suffix.lower() == ".json" else "wfs_csv")
+    fmt = fmt or _sniff_wfs_format(path)
     if fmt not in WFS_READERS:
         raise ConfigError(f"WFS format: {fmt!r} is not one of {', '.join(WFS_READERS)}")
+    if fmt in _PER_POSE_READERS:
+        return WFS_READERS[fmt](path, pose_pattern)
     return WFS_READERS[fmt](path)
 
 
@@ -572,10 +694,12 @@ def easy_handeye_yaml(Z: np.ndarray, robot_base_frame: str = "base_link", robot_
     return "\n".join(lines) + "\n"
 
 
-def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
+def write_bundle(folder, files: dict, overwrite: bool = True, drop: tuple = ()) -> dict:
     """Write {name: text | bytes} into ``folder`` all or none: the files go into a
     temporary sibling folder first, which then replaces ``folder`` (existing files
-    in ``folder`` not in ``files`` are kept). Returns {name: Path}."""
+    in ``folder`` not in ``files`` are kept, except those named in ``drop``: e.g. the
+    easy_handeye.yaml of an earlier run beside a calibration that failed its check).
+    Returns {name: Path}."""
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     if not folder.name:  # ".", "..", "/": swap and rename need the folder's own name
@@ -586,15 +710,16 @@ def write_bundle(folder, files: dict, overwrite: bool = True) -> dict:
     try:
         if folder.exists():
             for p in folder.iterdir():
-                if p.name not in files and p.is_file():
+                if p.name not in files and p.name not in drop and p.is_file():
                     shutil.copy2(p, tmp / p.name)
         for name, data in files.items():
             write_atomic(tmp / name, data)
         old = None
-        if folder.exists():
-            old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
-            os.replace(folder, old)
-        os.replace(tmp, folder)
+        with committing():  # the swap completes whatever signal arrives meanwhile
+            if folder.exists():
+                old = folder.with_name(f".{folder.name}.old-{os.getpid()}")
+                os.replace(folder, old)
+            os.replace(tmp, folder)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:

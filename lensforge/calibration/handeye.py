@@ -44,7 +44,7 @@ from scipy.optimize import least_squares
 from ..errors import CalibrationError
 from .formats import rotation_defects
 from ..optics.pose import (DOF_NAMES, adjoint, invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right,
-                           right_jacobian_so3, rotations, skew)
+                           right_jacobian_inv_so3, right_jacobian_so3, rotations, skew)
 from ..optics.sensitivity import observability
 
 __all__ = [
@@ -401,20 +401,50 @@ def _finite_or_none(a: np.ndarray) -> list:
 class HandEyeResult:
     """Solution of A_i X = Z B_i.
 
-    X = ^E T_O, Z = ^W T_S (4x4, mm). cov_X, cov_Z: 6x6 covariances of the right
-    perturbations xi = (rho mm, omega rad) of X (in {O} axes) and Z (in {S} axes),
-    from the Gauss-Newton information at the solution (the Cramer-Rao bound of the
-    noise model; for closed-form methods this is the bound, not their own spread);
-    cov: the full 12x12 (X first, then Z). residuals: (n, 6) e_i = log((Z B_i)^-1 A_i X)
-    in (mm, rad); residual_chi2: e_i^T Sigma_i^-1 e_i per pose; chi2_dof =
-    sum residual_chi2 / (6 n - 12). noise_model: "given" or "estimated" (no sigma and
-    no cov_B: isotropic translation/rotation variances estimated from the closed-form
-    residuals, so chi2_dof is ~1 by construction). method: the method asked for;
-    start_method: the closed form used (for "ml", the better of Shah and Li by the
-    weighted cost). observable / null_directions: see ``handeye_observability``; a
-    direction is unobservable when the motion lacks it (degenerate; inf variance) or
-    its predicted 1-sigma exceeds obs_limits (default OBS_LIMITS: 1 mm / 0.01 rad).
-    iterations: residual evaluations of the ML refinement (0 for closed forms).
+    The covariances are the Gauss-Newton information at the solution (the Cramer-Rao
+    bound of the noise model; for closed-form methods this is the bound, not their own
+    spread). A direction is unobservable when the motion lacks it (degenerate; inf
+    variance) or its predicted 1-sigma exceeds obs_limits (default OBS_LIMITS: 1 mm /
+    0.01 rad; see ``handeye_observability``).
+
+    Parameters
+    ----------
+    X, Z : numpy.ndarray, shape (4, 4)
+        X = ^E T_O (lens in the flange frame) and Z = ^W T_S (sensor in the robot base), mm.
+    cov_X, cov_Z : numpy.ndarray, shape (6, 6)
+        Covariances of the right perturbations xi = (rho mm, omega rad) of X (in {O} axes)
+        and Z (in {S} axes).
+    cov : numpy.ndarray, shape (12, 12)
+        The full covariance, X first, then Z.
+    residuals : numpy.ndarray, shape (n, 6)
+        e_i = log((Z B_i)^-1 A_i X), mm and rad.
+    residual_chi2 : numpy.ndarray, shape (n,)
+        e_i^T Sigma_i^-1 e_i per pose.
+    chi2 : float
+        Their sum.
+    dof : int
+        6 n - 12.
+    chi2_dof : float
+        chi2 / dof.
+    singular_values, relative_singular_values : numpy.ndarray, shape (12,)
+        Of the whitened Jacobian (relative: of its column-equilibrated form, over the largest).
+    observable : bool
+        Every direction observable.
+    null_directions : tuple of str
+        The directions that are not.
+    method : str
+        The method asked for.
+    start_method : str
+        The closed form used (for "ml", the better of Shah and Li by the weighted cost).
+    iterations : int
+        Residual evaluations of the ML refinement (0 for closed forms).
+    converged : bool
+        The refinement met its tolerance.
+    noise_model : str
+        "given" or "estimated" (no sigma and no cov_B: isotropic translation/rotation
+        variances estimated from the closed-form residuals, so chi2_dof is ~1 by construction).
+    warnings : tuple of str
+        What the caller should know (weak or null directions).
     """
 
     X: np.ndarray
@@ -483,17 +513,6 @@ def _cost(A, B, X, Z, Wh):
     return float(np.sum(r * r))
 
 
-def _jr_inv_batch(r: np.ndarray, left: bool = False) -> np.ndarray:
-    """Inverse right (or left) Jacobians of SO(3) for rotation vectors r (n, 3)."""
-    th = np.linalg.norm(r, axis=1)
-    K = skew(-r if left else r)
-    small = th < 1e-4
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
-                 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
-    return np.eye(3) + 0.5 * K + c[:, None, None] * (K @ K)
-
-
 def _param_jac(xi: np.ndarray) -> np.ndarray:
     """J_P(xi): P(xi + d) = P(xi) P(J_P(xi) d) to first order (6x6)."""
     M = np.zeros((6, 6))
@@ -520,12 +539,12 @@ def _refine(A, B, X0, Z0, Wh, max_nfev):
         e = matrix_to_pose(E)
         Jx = np.zeros((n, 6, 6))
         Jx[:, :3, :3] = E[:, :3, :3]
-        Jx[:, 3:, 3:] = _jr_inv_batch(e[:, 3:])
+        Jx[:, 3:, 3:] = right_jacobian_inv_so3(e[:, 3:])
         Jx = Jx @ _param_jac(p[:6])
         L = np.zeros((n, 6, 6))
         L[:, :3, :3] = np.eye(3)
         L[:, :3, 3:] = -skew(e[:, :3])
-        L[:, 3:, 3:] = _jr_inv_batch(e[:, 3:], left=True)
+        L[:, 3:, 3:] = right_jacobian_inv_so3(e[:, 3:], left=True)
         Jz = -(L @ AdBinv) @ _param_jac(p[6:])
         J = np.concatenate([Jx, Jz], axis=2)
         return (Wh @ J).reshape(-1, 12)
@@ -551,23 +570,46 @@ def solve_handeye(A: ArrayLike, B: ArrayLike, method: str = "ml", sigma: tuple[f
                   max_nfev: int = 2000) -> HandEyeResult:
     """Solve A_i X = Z B_i for X = ^E T_O and Z = ^W T_S.
 
-    A: (n, 4, 4) flange poses ^W T_E (mm); B: (n, 4, 4) lens poses ^S T_O (mm); n >= 3.
-    method: "ml" (maximum likelihood over SE(3) x SE(3), started from the better of
-    Shah and Li by the weighted cost), "shah" or "li" (closed forms).
-    sigma: robot pose noise of A: (translation_mm, rotation_rad) isotropic, a dict with
-    those keys, a 6x6 covariance, one per pose (n, 6, 6), or an object with ``.cov``
-    (robot.RobotNoise). cov_B: lens-pose covariance, one 6x6 or (n, 6, 6), in the
-    right-perturbation convention (the pose estimator's covariance at x ~ 0; see
-    ``pose_vector_cov_to_right``). With neither, the noise is estimated from the data.
-    on_degenerate: what to do with degenerate motion (a direction the motion lacks,
-    see DEGENERATE_RTOL): "raise" (CalibrationError naming the null directions) or
-    "warn" (return with observable=False, inf 1-sigma on the parameters the null
-    directions move, warnings set and a RuntimeWarning). obs_limits: (mm, rad), the
-    predicted 1-sigma beyond which a direction counts as unobservable (default
-    OBS_LIMITS); such a merely noisy problem is always solved, with observable=False,
-    a warning in ``warnings`` and a RuntimeWarning.
-    Raises CalibrationError for malformed input, fewer than 3 poses or (by default)
-    degenerate motion.
+    A merely noisy problem (a direction whose predicted 1-sigma exceeds ``obs_limits``) is
+    always solved, with observable=False, a warning in ``warnings`` and a RuntimeWarning.
+
+    Parameters
+    ----------
+    A : array_like, shape (n, 4, 4)
+        Flange poses ^W T_E, mm; n >= 3.
+    B : array_like, shape (n, 4, 4)
+        Lens poses ^S T_O, mm.
+    method : str
+        "ml" (maximum likelihood over SE(3) x SE(3), started from the better of Shah and Li
+        by the weighted cost), "shah" or "li" (closed forms).
+    sigma : tuple, dict, array_like or object, optional
+        Robot pose noise of A: (translation_mm, rotation_rad) isotropic, a dict with those
+        keys, a 6x6 covariance, one per pose (n, 6, 6), or an object with ``.cov``
+        (robot.RobotNoise).
+    cov_B : array_like, shape (6, 6) or (n, 6, 6), optional
+        Lens-pose covariance in the right-perturbation convention (the pose estimator's
+        covariance at x ~ 0; see ``pose_vector_cov_to_right``). With neither sigma nor
+        cov_B the noise is estimated from the data.
+    on_degenerate : str
+        Degenerate motion (a direction the motion lacks, see DEGENERATE_RTOL): "raise"
+        (CalibrationError naming the null directions) or "warn" (return with
+        observable=False, inf 1-sigma on the parameters the null directions move).
+    obs_limits : tuple of float
+        (mm, rad): the predicted 1-sigma beyond which a direction counts as unobservable.
+    max_outer : int
+        Outer re-weighting passes of the ML refinement.
+    max_nfev : int
+        Residual evaluations allowed per pass.
+
+    Returns
+    -------
+    HandEyeResult
+        X, Z (mm), their covariances, residuals, chi2 and observability.
+
+    Raises
+    ------
+    CalibrationError
+        Malformed input, fewer than 3 poses or (by default) degenerate motion.
     """
     if method not in METHODS:
         raise CalibrationError(f"method: {method!r} is not one of {', '.join(METHODS)}")

@@ -60,7 +60,7 @@ from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
 
-__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_calibrate_from", "joint_information", "pose_chain", "chain_jacobians",
+__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain", "chain_jacobians",
            "simulate_joint_data"]
 
 # relinearise the iteration Jacobians when a step is not at least this much smaller than the one before
@@ -156,8 +156,10 @@ class JointCalibrationResult:
 class JointProblem:
     """Residuals and Jacobians of the joint problem (see the module doc)."""
 
-    def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool):
+    def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool,
+                 measurement=None):
         self.bench = bench
+        self.measurement = measurement  # what is measured (calibration.measurement; None: the Zernikes)
         self.param = param
         self.z = z
         self.A = A
@@ -182,6 +184,8 @@ class JointProblem:
         key = np.asarray(theta, float).tobytes()
         if key != self._model_key:
             self._model = ForwardModel(self.bench, self.param.build(theta), validate=False)
+            if self.measurement is not None:
+                self._model = self.measurement.model(self._model)
             self._model_key = key
             if self.Li is None:
                 self.Li = self._model.whitener
@@ -281,7 +285,7 @@ def _inv(S):
 def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
                     theta0=None, theta_prior: bool = True, max_iter: int = 40, tol: float = _STEP_TOL,
                     alpha: float = 1e-3, theta_jacobian0=None,
-                    refresh_ratio: float = _REFRESH_RATIO) -> JointCalibrationResult:
+                    refresh_ratio: float = _REFRESH_RATIO, measurement=None) -> JointCalibrationResult:
     """Joint ML/MAP estimate of X, Z, theta and the robot pose errors (module doc).
 
     bench: the optics bench; param: theta parameterisation; z: (n, m) measured Zernikes
@@ -319,7 +323,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     if used.sum() < 3:
         raise CalibrationError(f"joint calibration: only {int(used.sum())} of {n} poses light the pupil at the "
                                "start; start closer (X0, Z0) or choose poses nearer nominal")
-    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior)
+    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior, measurement)
     n = int(used.sum())
     a = np.zeros((n, 6))
     r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a)
@@ -418,28 +422,6 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         n_traced=pb.n_traced, parameterisation=param, used=used)
 
 
-def joint_calibrate_from(bench, param: LensParameterisation, z, A, T_SO_nominal, starts, robot_cov,
-                         **kw) -> JointCalibrationResult:
-    """joint_calibrate from each (X0, Z0) of ``starts`` in turn until the chi^2 test
-    accepts the fit (a flagged fit from a poor start is usually a local minimum);
-    returns the accepted or else the lowest-cost result. Typical starts: the two-stage
-    solution, then the nominal grasp and sensor placement of the robot program."""
-    best, error = None, None
-    for X0, Z0 in starts:
-        try:
-            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, **kw)
-        except CalibrationError as e:
-            error = e
-            continue
-        if best is None or res.chi2 < best.chi2:
-            best = res
-        if not res.mismatch:
-            break
-    if best is None:
-        raise error or CalibrationError("joint calibration: no start given")
-    return best
-
-
 def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z, T_SO_nominal, rng=None):
     """Zernike data (n, m) of the as-built lens of theta at the lens poses of the chain
     Z^-1 A_true X (noise added when an rng is given); raises if a pose is unlit."""
@@ -448,7 +430,4 @@ def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z,
     res = model.evaluate(x, check_range=False)
     if not res.valid.all():
         raise CalibrationError(f"simulated data: poses {np.flatnonzero(~res.valid).tolist()} leave the pupil unlit")
-    if rng is None:
-        return res.z
-    sigma = bench.noise.slope_sigma_urad * 1e-6
-    return model.pupil.fit(res.slopes + rng.normal(0.0, sigma, res.slopes.shape))
+    return res.z if rng is None else model.add_noise(res, rng)

@@ -42,7 +42,7 @@ def box_candidates(rng: np.random.Generator, span, n_random: int = 400) -> np.nd
     return np.concatenate([corners, faces, rng.uniform(-1.0, 1.0, (n_random, 6)) * span])
 
 
-def candidate_information(bench, param: LensParameterisation, scene, x, robot_cov=None):
+def candidate_information(bench, param: LensParameterisation, scene, x, robot_cov=None, measurement=None):
     """(I (m, G, G) information per candidate pose x (m, 6), lit (m,)); G = 12 + k.
     Unlit candidates get zero information."""
     from .joint import JointProblem
@@ -52,7 +52,7 @@ def candidate_information(bench, param: LensParameterisation, scene, x, robot_co
     m = x.shape[0]
     B = scene.T_SO_nominal @ _pose_matrices(x)
     A = scene.Z @ B @ np.linalg.inv(scene.X)
-    pb = JointProblem(bench, param, np.zeros((m, 1)), A, scene.T_SO_nominal, robot_cov, True)
+    pb = JointProblem(bench, param, np.zeros((m, 1)), A, scene.T_SO_nominal, robot_cov, True, measurement)
     theta = np.zeros(param.k)
     model = pb.model(theta)
     res = model.evaluate(x, check_range=False)
@@ -70,12 +70,13 @@ def _pose_matrices(x):
     return pose_to_matrix(x)
 
 
-def predicted_joint_uncertainty(bench, param: LensParameterisation, scene, x, robot_cov=None) -> dict:
+def predicted_joint_uncertainty(bench, param: LensParameterisation, scene, x, robot_cov=None,
+                                measurement=None) -> dict:
     """Predicted Z 1-sigma (joint CRLB, theta free) for lens poses x (n, 6) and, for
     comparison, with theta known (poses that do not light the pupil for the mean
     as-built lens count for nothing; n_lit says how many do): keys Z_sigma_mm (3), Z_sigma_deg (3), Z_translation_mm /
     Z_rotation_deg (RMS norms), *_known_lens_*, theta_sigma (posterior, prior = 1), cov."""
-    I, lit = candidate_information(bench, param, scene, x, robot_cov)
+    I, lit = candidate_information(bench, param, scene, x, robot_cov, measurement)
     return {**z_sigma(I.sum(axis=0) + theta_prior(param.k)), "n_lit": int(lit.sum())}
 
 

@@ -175,19 +175,40 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
                          _start: _Start | None = None) -> BatchPoseEstimate:
     """Whitened least-squares pose estimates for P measurements at once (trust-region LM, batched).
 
-    z_measured: (P, m) Zernikes (um); x0: (P, 6) initial poses (mm, rad). The same
-    objective |L^-1 (h(x) - z)|^2 for every pose; each pose has its own trust region and
-    stops on its own (relative step < xtol in scaled units, or relative cost change
-    < ftol with a step the linear model predicted well). The trust region lives in
-    the bench's pose scales u = x / D (1 mm, 1 deg by default), starts at radius
+    The same objective |L^-1 (h(x) - z)|^2 for every pose; each pose has its own trust region
+    and stops on its own (relative step < xtol in scaled units, or relative cost change
+    < ftol with a step the linear model predicted well). The trust region lives in the
+    bench's pose scales u = x / D (1 mm, 1 deg by default), starts at radius
     ``trust_radius`` (1), widened to the first Gauss-Newton step when that step stays
-    inside the bench's pose range (a fixed larger start lost 3 (radius 3) to 17
-    (radius 100) of 30 noisy paper-Zernike estimates), and grows on good steps up to
-    ``max_step`` (default unbounded); this is what keeps
-    a weakly observable DOF (the paper Zernike lens's rz, 1-sigma ~ 11 deg) from
-    jumping out of the bench's range on the first Gauss-Newton step. Directions
-    numerically null at x0 (``observability``, bench.rank_rtol) stay at x0 with inf
-    variance.
+    inside the bench's pose range (a fixed larger start lost 3 (radius 3) to 17 (radius
+    100) of 30 noisy paper-Zernike estimates), and grows on good steps up to ``max_step``
+    (default unbounded); this is what keeps a weakly observable DOF (the paper Zernike
+    lens's rz, 1-sigma ~ 11 deg) from jumping out of the bench's range on the first
+    Gauss-Newton step. Directions numerically null at x0 (``observability``,
+    bench.rank_rtol) stay at x0 with inf variance.
+
+    Parameters
+    ----------
+    model : ForwardModel
+        Bench and lens.
+    z_measured : array_like, shape (P, m)
+        Measured Zernikes, um.
+    x0 : array_like, shape (P, 6)
+        Initial poses, mm and rad.
+    max_iter : int
+        LM iterations per pose.
+    xtol, ftol : float
+        Relative step (scaled units) and relative cost-change tolerances.
+    max_step : float, optional
+        Largest trust radius, scaled units (default unbounded).
+    trust_radius : float
+        Initial trust radius, scaled units.
+
+    Returns
+    -------
+    BatchPoseEstimate
+        ``poses`` (P, 6) mm and rad, ``cov`` (P, 6, 6), ``chi2`` (P,), ``converged`` (P,),
+        ``out_of_range`` (P,), ``observable`` (P, 6), ``status`` (P,) and iteration counts.
     """
     Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
     x = np.array(np.atleast_2d(x0), dtype=float)
@@ -590,18 +611,45 @@ def estimate_pose_model(model: ForwardModel, z_measured, x0=None, method: str = 
 
 def estimate_pose(bench: Bench, lens: Lens, z_measured: ArrayLike, x0: ArrayLike | None = None, method: str = "lm",
                   **options: Any) -> PoseEstimate:
-    """Estimate the lens pose (mm, rad; relative to nominal) from measured Zernikes (um).
+    """Estimate the lens pose relative to nominal from measured Zernikes.
 
-    method: a name in ``ESTIMATORS``: "lm" (default; least squares on noise-whitened
-    residuals, covariance (J^T R^-1 J)^-1) or "ukf" (the paper's baseline; see the
-    module docstring for why ``ukf_repeats`` > 1 gives an overconfident covariance).
-    x0: initial pose (default nominal). Options: on_rank_loss ("warn" or "raise"); lm: max_iter (50 iterations), tol
-    (1e-8, relative step and cost change); ukf: prior_cov (default from ``initial_poses``), ukf_repeats
-    (12, the paper's), ukf_alpha/beta/kappa (0.5, 2, 0), ukf_process_cov (zero: static
-    state).
-    Raises ConfigError (bad inputs), PoseRangeError (x0 outside the bench's range),
-    PupilError (pupil not lit at x0), RankError (rank loss with on_rank_loss="raise").
     For many estimates on one lens build the ForwardModel once and call
     :func:`estimate_pose_model`; for many measurements at once, :func:`estimate_poses_batch`.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench.
+    lens : Lens
+        The lens model.
+    z_measured : array_like, shape (m,)
+        Measured Zernike coefficients, um (Noll modes of the bench's sensor).
+    x0 : array_like, shape (6,), optional
+        Initial pose (mm, rad); default nominal.
+    method : str
+        A name in ``ESTIMATORS``: "lm" (default; least squares on noise-whitened
+        residuals, covariance (J^T R^-1 J)^-1) or "ukf" (the paper's baseline; see the
+        module docstring for why ``ukf_repeats`` > 1 gives an overconfident covariance).
+    **options
+        on_rank_loss ("warn" or "raise"); lm: max_iter (50), tol (1e-8, relative step and
+        cost change); ukf: prior_cov (default from ``initial_poses``), ukf_repeats (12, the
+        paper's), ukf_alpha/beta/kappa (0.5, 2, 0), ukf_process_cov (zero: static state).
+
+    Returns
+    -------
+    PoseEstimate
+        ``pose`` (6,) mm and rad, ``cov`` (6, 6) (inf on the diagonal of unobservable DOF),
+        ``chi2``, ``dof``, ``converged``, ``observable`` and the solver's record.
+
+    Raises
+    ------
+    ConfigError
+        Bad inputs.
+    PoseRangeError
+        x0 outside the bench's range.
+    PupilError
+        Pupil not lit at x0.
+    RankError
+        Rank loss with on_rank_loss="raise".
     """
     return estimate_pose_model(ForwardModel(bench, lens), z_measured, x0, method, **options)

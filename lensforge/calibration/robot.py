@@ -50,8 +50,10 @@ from pathlib import Path
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError, PoseRangeError
+from .plausibility import check_repeatability
 from ..fileio import read_toml
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
+from .formats import xyzabc_to_matrix
 
 __all__ = [
     "RobotModel",
@@ -137,13 +139,6 @@ def _num(d: dict, key: str, where: str, default=None, positive: bool = True) -> 
     return float(v)
 
 
-def _xyzabc(v) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("ZYX", v[3:], degrees=True).as_matrix()
-    T[:3, 3] = v[:3]
-    return T
-
-
 def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
     """RobotModel of a parsed robot TOML (see the module docstring); ConfigError naming the field."""
     known = {"name", "kinematics", "reach_mm", "repeatability_mm", "repeatability_lever_mm", "ik_seeds_deg",
@@ -205,8 +200,8 @@ def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
     cell = d.get("cell", {})
     if not isinstance(cell, dict):
         raise ConfigError(f"{where}.cell: expected a table")
-    cZ = _xyzabc(_vec(cell, "sensor_xyzabc", 6, f"{where}.cell")) if "sensor_xyzabc" in cell else None
-    cX = _xyzabc(_vec(cell, "grasp_xyzabc", 6, f"{where}.cell")) if "grasp_xyzabc" in cell else None
+    cZ = xyzabc_to_matrix(_vec(cell, "sensor_xyzabc", 6, f"{where}.cell")) if "sensor_xyzabc" in cell else None
+    cX = xyzabc_to_matrix(_vec(cell, "grasp_xyzabc", 6, f"{where}.cell")) if "grasp_xyzabc" in cell else None
     name = d.get("name")
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{where}.name: expected a non-empty string")
@@ -224,7 +219,24 @@ def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
 
 
 def load_robot(spec: str | Path | None = None) -> RobotModel:
-    """A robot by registry name (``ROBOTS``: kr10_r1100_sixx, ur5e) or TOML path; None = KR 10."""
+    """A robot model by registry name or TOML file.
+
+    Parameters
+    ----------
+    spec : str or pathlib.Path, optional
+        A ``ROBOTS`` name (kr10_r1100_sixx, ur5e) or a robot TOML path; None: the KR 10.
+
+    Returns
+    -------
+    RobotModel
+        Kinematics (mm, rad), joint limits, repeatability (the robot noise) and the cell's
+        nominal placement.
+
+    Raises
+    ------
+    ConfigError
+        An unknown name or a bad file.
+    """
     spec = "kr10_r1100_sixx" if spec is None else spec
     key = str(spec)
     if key in ROBOTS:
@@ -234,7 +246,9 @@ def load_robot(spec: str | Path | None = None) -> RobotModel:
         if not path.exists():
             raise ConfigError(f"robot: {key!r} is neither a built-in robot ({', '.join(ROBOTS)}) nor an existing "
                               "TOML file")
-    return robot_from_dict(read_toml(path, "robot file"), where=path.name)
+    robot = robot_from_dict(read_toml(path, "robot file"), where=path.name)
+    check_repeatability(robot.repeatability_mm, path.name)  # a robot file's value; simulations may go lower
+    return robot
 
 
 def kr10_r1100_sixx() -> RobotModel:

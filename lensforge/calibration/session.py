@@ -11,59 +11,46 @@ design's model (with a lateral margin) and whose flange pose the robot reaches
 (inverse kinematics within the joint limits); the flange poses follow from the
 robot's cell (nominal Z and X, robot TOML [cell]).
 
-``calibrate``: ``method="two-stage"``: (1) each measured Zernike vector gives a lens
-pose with its covariance (``pose_estimation``, Levenberg-Marquardt from the pose the
-cell predicts for the recorded flange pose, then from nominal); (2) A X = Z B by
-maximum likelihood (``handeye.solve_handeye``) with the robot's repeatability and
-each pose's covariance. Poses are matched by id; ids in one file only, unlit poses
-and poses whose estimate fails are reported and left out. Outliers, two robust
-tests (Bonferroni 1 - alpha/n quantile of the chi2 law, scaled up by the median
-chi2 over its expectation so that an overall misfit does not reject every pose):
-first on each lens-pose fit (m - 6 DOF: a wrong local minimum or a corrupted frame),
-then on each pose's hand-eye residual (6 DOF), after which the solve is repeated once. Model check: chi2 of the final solve against its degrees
-of freedom (p-value); a small p-value warns that the lens as built or the noise
-model differs from what the design says. ``method="joint"`` (the default,
-``session_joint``) estimates the as-built lens with X and Z.
+``calibrate``: reads the WFS export and the recorded flange poses, matches them by pose
+id (ids in one file only are reported and left out; ``match_session``) into a
+``SessionData`` and runs the one calibration pipeline (``pipeline.run``: ``joint``, the
+default, or ``two-stage``), the same code every simulation of ``verification`` runs.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
-from ..errors import CalibrationError, ConfigError, LensforgeError, PoseRangeError
+from ..asbuilt.lens_params import parameterise
+from ..asbuilt.tolerances import no_tolerance_model, resolve_tolerances
+from ..errors import CalibrationError, ConfigError, PoseRangeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens, LensSpec, resolve_lens
-from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
-from . import formats
-from .handeye import solve_handeye
+from . import formats, thorlabs
+from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
 from .joint_design import candidate_information, design_joint_poses
-from ..asbuilt.lens_params import parameterise
+from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
-from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_model, estimate_poses_batch
+from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
+                           check_wfs_values, job_memory_bytes, pose_file_kind)
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
-from .session_joint import joint_session, resolve_tolerances
-from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, frame_dict, std_dict
+from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, std_dict
 
 if TYPE_CHECKING:
     from ..asbuilt.tolerances import Tolerances
 
-__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "CalibrationResult", "SessionData", "match_session",
-           "two_stage", "calibrate", "estimate", "load_design_lens",
-           "bench_for_measurements", "zernike_for_model", "frame_dict", "CALIBRATION_METHODS", "SCHEMA_VERSION"]
-
-CALIBRATION_METHODS: dict = {}  # name -> function(SessionData, *, outlier_alpha, progress) -> CalibrationResult
+__all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "match_session", "calibrate", "estimate",
+           "load_design_lens", "bench_for_measurements", "zernike_for_model"]
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -76,10 +63,15 @@ def load_design_lens(design: LensSpec, bench: Bench | None = None) -> tuple[Lens
     return r.lens, r.bench_or(bench)
 
 
-def bench_for_measurements(bench: Bench, wfs: formats.WfsData) -> Bench:
+def bench_for_measurements(bench: Bench, wfs: formats.WfsData, wfs_header: str = "file") -> Bench:
     """The bench with the WFS file's Zernike order, pupil and wavelength (the file
-    describes the instrument's settings; absent header values keep the bench's)."""
-    h = wfs.header
+    describes the instrument's settings; absent header values keep the bench's).
+    wfs_header: "file" (the file's header values win), "bench" (they are ignored) or
+    "error" (a header value that contradicts the bench is a ConfigError naming both;
+    ``plausibility.check_wfs_header``)."""
+    h = check_wfs_header(bench, wfs.header, wfs.source or "WFS file", wfs_header)
+    if h.get("instrument_file"):  # an instrument's own file: its settings must agree with the bench
+        thorlabs.check_against_bench(h, bench, wfs.source)
     sensor = {"zernike_order": int(wfs.order)}
     if "pupil_radius_mm" in h:
         sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])
@@ -204,17 +196,49 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
          n_random_sets: int = 5) -> Plan:
     """Calibration poses for the joint calibration (see the module docstring).
 
-    design: design file / paper lens name / Lens; robot: RobotModel, registry name or
-    TOML path (default KR 10); n: poses; tolerances: the tolerance model of the
-    as-built lens prior (as ``calibrate``'s: "default", a TOML path or Tolerances;
-    None or "none": the lens as designed, the design of the known-lens problem);
-    work_*: the box about nominal the poses are drawn from (ASSUMPTION +-0.5 mm,
-    +-5 deg, as verification/scenario.py); lit_margin_mm: lateral margin a pose must
-    keep lit; n_random_sets: random n-pose plans of the lit candidates the design is
-    compared with (median). The choice is ``joint_design.design_joint_poses`` (Ds-optimal
-    for Z with X, the robot errors and the lens parameters theta as nuisances; theta
-    from ``lens_params.parameterise`` over the lit candidates). Every pose is
-    reach-checked by inverse kinematics and pupil-lit on the design's model.
+    The choice is ``joint_design.design_joint_poses`` (Ds-optimal for Z with X, the robot
+    errors and the lens parameters theta as nuisances; theta from
+    ``lens_params.parameterise`` over the lit candidates). Every pose is reach-checked by
+    inverse kinematics and pupil-lit on the design's model.
+
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    robot : RobotModel or str, optional
+        RobotModel, registry name or TOML path (default KR 10).
+    n : int
+        Number of poses.
+    seed : int
+        Seed of the candidates and of the random comparison plans.
+    tolerances : Tolerances, str or os.PathLike, optional
+        The tolerance model of the as-built lens prior ("default", a TOML path or
+        Tolerances); None or "none": the lens as designed (the known-lens problem).
+    work_translation_mm, work_rotation_rad : float
+        Half-widths of the box about nominal the poses are drawn from (ASSUMPTION
+        +-0.5 mm, +-5 deg, as verification/scenario.py).
+    lit_margin_mm : float
+        Lateral margin a pose must keep lit, mm.
+    n_candidates : int
+        Candidate poses the design chooses from.
+    n_random_sets : int
+        Random n-pose plans of the lit candidates the design is compared with (median).
+
+    Returns
+    -------
+    Plan
+        ``ids``, ``x`` (n, 6) lens poses (mm, rad), ``A`` (n, 4, 4) flange poses (mm),
+        ``joints`` (n, 6) rad, the predicted Z 1-sigma ``z_std`` (6,) (mm, rad) with and
+        without the lens free, and ``files()`` (CSV, JSON 4x4, KRL).
+
+    Raises
+    ------
+    ConfigError
+        Bad input (e.g. n < 3), or no candidate that is lit and reachable.
+    PoseRangeError
+        Fewer than n lit candidate poses the robot can reach in the working box.
     """
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
@@ -263,29 +287,35 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
 # ----------------------------------------------------------------------------- estimate
 
 
-def _estimate_one(model: ForwardModel, z: np.ndarray, starts) -> tuple[PoseEstimate | None, str]:
-    """LM estimate from the first start that converges; (None, reason) otherwise."""
-    reason = ""
-    for x0 in starts:
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UnobservableWarning)
-                est = estimate_pose_model(model, z, x0=np.clip(x0, -4.0, 4.0) if x0 is not None else None)
-        except LensforgeError as e:
-            reason = str(e)
-            continue
-        if est.converged:
-            return est, ""
-        reason = est.message
-    return None, reason or "the estimate did not converge"
-
-
-def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None, pose_id: str | None = None) -> dict:
+def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsData, *, bench: Bench | None = None,
+             pose_id: str | None = None, wfs_header: str = "error") -> dict:
     """One lens pose with its covariance from one WFS measurement.
 
-    measurement: WFS CSV/JSON path or WfsData; pose_id selects a row (default: the
-    file must hold exactly one). Returns {"pose_id", "estimate": PoseEstimate,
-    "bench": the bench used}."""
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    measurement : str, os.PathLike or WfsData
+        WFS CSV/JSON path or WfsData.
+    bench : Bench, optional
+        Default: the design's bench, adjusted to the measurement's header.
+    pose_id : str, optional
+        The row to use (default: the file must hold exactly one).
+    wfs_header : str
+        "error" (a header value that contradicts the bench is a ConfigError naming both),
+        "file" (the file's values win) or "bench" (they are ignored).
+
+    Returns
+    -------
+    dict
+        ``pose_id``, ``estimate`` (PoseEstimate: pose (6,) mm and rad, cov (6, 6)) and
+        ``bench`` (the bench used).
+
+    Raises
+    ------
+    ConfigError
+        A bad file or pose id.
+    """
     lens, bench = load_design_lens(design, bench)
     wfs = _as_table(measurement, formats.read_wfs)
     if pose_id is None:
@@ -296,34 +326,40 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
         if str(pose_id) not in wfs.ids:
             raise ConfigError(f"{wfs.source}: field pose: no pose id {pose_id!r} (ids: {', '.join(wfs.ids[:10])}...)")
         k = wfs.ids.index(str(pose_id))
-    b = bench_for_measurements(bench, wfs)
+    check_wfs_values(wfs.zernike[k:k + 1], wfs.source or "WFS file", wfs.rows[k:k + 1])
+    b = bench_for_measurements(bench, wfs, wfs_header)
     model = ForwardModel(b, lens)
     z = zernike_for_model(wfs.zernike[k], model)[0]
-    est, reason = _estimate_one(model, z, [None])
+    est, reason = estimate_one(model, z, [None])
     if est is None:
         raise CalibrationError(f"{wfs.source}: row {wfs.rows[k]}: no lens pose found ({reason})")
     return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
 
 
 
-def _threshold(n: int, scale: float, alpha: float = OUTLIER_ALPHA) -> float:
-    return float(chi2_dist.ppf(1.0 - alpha / max(n, 1), 6) * scale)
-
-
-def _solve(A, B, C, noise):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return solve_handeye(A, B, method="ml", sigma=noise, cov_B=C, on_degenerate="warn")
-
-
 def match_session(design, measurements, robot_poses, *, bench: Bench | None = None,
-                  robot: RobotModel | str | None = None) -> SessionData:
+                  robot: RobotModel | str | None = None, wfs_header: str = "error", pose_pattern: str | None = None,
+                  reference_pose: str | None = None) -> SessionData:
     """Read and match a session's files by pose id (ids in one file only are reported in
-    ``rejected``; fewer than 3 matches is a ConfigError naming both files)."""
+    ``rejected``; fewer than 3 matches is a ConfigError naming both files). measurements:
+    a WFS file, or a folder/glob of per-pose instrument files (``formats.read_wfs``;
+    pose_pattern: the file-name pattern of their ids); integer ids match as integers;
+    reference_pose: the pose of a user reference the measurements are relative to
+    (default: the files' own ``reference_pose``; ``measurement.referenced_session``).
+    Implausible inputs are refused first (``plausibility``): an all-zero or constant WFS
+    file, header values that contradict the bench (wfs_header: "error", "file" or "bench"),
+    flange poses beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
-    wfs = _as_table(measurements, formats.read_wfs)
+    wfs = _as_table(measurements, lambda p: formats.read_wfs(p, pose_pattern=pose_pattern))
     poses = _as_table(robot_poses, formats.read_robot_poses)
+    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
+    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
+    if not isinstance(wfs, thorlabs.SpotFields):
+        check_wfs_values(wfs.zernike, wfs.source or "WFS file", wfs.rows)
+    units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
+    check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
+    poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
     rejected = []
     wfs_ids = set(wfs.ids)
     for i in poses.ids:
@@ -337,152 +373,74 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    b = bench_for_measurements(bench, wfs)
-    model = ForwardModel(b, lens)
     A = poses.T[[poses.ids.index(i) for i in common]]
-    z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    meas = None
+    if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
+        b = spot_bench(bench, wfs)
+        meas, z, _ = slope_inputs(wfs, ForwardModel(b, lens), rows=[wfs.ids.index(i) for i in common])
+        model = meas.model(ForwardModel(b, lens))
+    else:
+        b = bench_for_measurements(bench, wfs, wfs_header)
+        model = ForwardModel(b, lens)
+        z = zernike_for_model(wfs.zernike[[wfs.ids.index(i) for i in common]], model)
+    check_job_memory(job_memory_bytes(len(common), len(model.modes), model.pupil.n_lenslets),
+                     f"calibrating {len(common)} poses", f"{poses.source or 'robot poses'}")
+    if ref is not None:
+        meas = Measurement(meas.kind if meas else "zernike", meas.lenslets if meas else None,
+                           meas.dropped if meas else (), reference=common.index(ref))
     return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
-                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected))
+                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected), measurement=meas)
 
 
 def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsData,
               robot_poses: str | PathLike[str] | formats.PoseTable, *, bench: Bench | None = None,
               robot: RobotModel | str | None = None, method: str = "joint",
               tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
-              progress: Callable[[int, int], None] | None = None) -> CalibrationResult:
+              progress: Callable[[int, int], None] | None = None, wfs_header: str = "error",
+              pose_pattern: str | None = None, reference_pose: str | None = None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
-    design: design file / paper lens / Lens; measurements: WFS CSV/JSON path or
-    WfsData; robot_poses: flange-pose CSV/JSON path or PoseTable; robot: RobotModel,
-    name or TOML (repeatability -> robot noise; [cell] -> initial guesses); method: a
-    CALIBRATION_METHODS name ("joint", the default: the as-built lens estimated with
-    X and Z, ``session_joint``; "two-stage": nominal lens); tolerances: the tolerance
-    model of the joint method's lens prior ("default": the package's file, or a TOML
-    path; two-stage ignores it); progress: optional callable (done, total) called after each
-    lens-pose estimate. Raises ConfigError/CalibrationError for bad input or fewer
-    than 3 usable poses.
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    measurements : str, os.PathLike or WfsData
+        WFS CSV/JSON path or WfsData.
+    robot_poses : str, os.PathLike or PoseTable
+        Flange-pose CSV/JSON path or PoseTable.
+    bench : Bench, optional
+        Default: the design's bench, adjusted to the measurements' header.
+    robot : RobotModel or str, optional
+        RobotModel, name or TOML (repeatability -> robot noise; [cell] -> initial guesses).
+    method : str
+        A ``pipeline.METHODS`` name: "joint" (the default: the as-built lens estimated with
+        X and Z, ``session_joint``) or "two-stage" (nominal lens).
+    tolerances : Tolerances, str or os.PathLike, optional
+        The tolerance model of the joint method's lens prior ("default": the package's
+        file, or a TOML path; two-stage ignores it).
+    outlier_alpha : float
+        Significance of the chi-square outlier test per pose.
+    progress : callable, optional
+        Called (done, total) after the lens-pose estimates.
+    wfs_header : str
+        "error" (a WFS header value that contradicts the bench is a ConfigError naming both),
+        "file" (the file's values win) or "bench" (they are ignored); see ``match_session``.
+
+    Returns
+    -------
+    CalibrationResult
+        ``X`` = ^E T_O and ``Z`` = ^W T_S (4x4, mm), the hand-eye result with covariances,
+        poses used and rejected, per-pose chi2, the model check's p-value, warnings; its
+        ``valid`` says whether it passed its chi2 model check (``model_check``): one that
+        did not is not a calibration (``calibration.diagnosis`` names the likely mistake).
+
+    Raises
+    ------
+    ConfigError, CalibrationError
+        Bad input or fewer than 3 usable poses.
     """
-    if method not in CALIBRATION_METHODS:
-        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(CALIBRATION_METHODS)}")
-    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot)
-    return CALIBRATION_METHODS[method](data, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
-
-
-def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
-              tolerances=None) -> CalibrationResult:
-    """Two-stage calibration of a matched session: lens poses one by one, then A X = Z B
-    by maximum likelihood, robust outlier test and chi2 model check (module docstring).
-    tolerances: unused (the nominal lens is assumed)."""
-    model, scene, robot = data.model, data.scene, data.robot
-    rejected = list(data.rejected)
-    common, A_all, z_all = data.ids, data.A, data.z
-    # initial guesses: the lens pose the nominal cell predicts for each recorded flange pose
-    T_nom_inv = invert_poses(scene.T_SO_nominal)
-    x_cell = matrix_to_pose(T_nom_inv @ invert_poses(scene.Z) @ A_all @ scene.X)
-    ids, A, B, C, est_chi2 = [], [], [], [], []
-    # all poses at once (batched LM from the cell's prediction); a pose that fails is retried alone from nominal
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UnobservableWarning)
-        batch = estimate_poses_batch(model, z_all, np.clip(x_cell, -4.0, 4.0))
-    dof = len(model.modes) - 6
-    for k, i in enumerate(common):
-        if batch.converged[k] and np.all(np.isfinite(batch.cov[k])):
-            pose, cov, chi2_dof = batch.poses[k], batch.cov[k], float(batch.chi2[k]) / dof
-        else:
-            est, reason = _estimate_one(model, z_all[k], [None])
-            if est is None:
-                rejected.append({"pose": i, "reason": f"lens pose not found (unlit or out of range): {reason}"})
-                continue
-            pose, cov, chi2_dof = est.pose, est.cov, est.chi2_dof
-        ids.append(i)
-        A.append(A_all[k])
-        B.append(scene.T_SO_nominal @ pose_to_matrix(pose))
-        C.append(pose_vector_cov_to_right(pose, cov))
-        est_chi2.append(chi2_dof)
-        if progress is not None:
-            progress(k + 1, len(common))
-    if len(ids) < 3:
-        raise CalibrationError(f"calibrate: only {len(ids)} poses gave a lens pose (need >= 3); "
-                               + "; ".join(f"{r['pose']}: {r['reason']}" for r in rejected[:3]))
-    # robust test on the lens-pose fits: a wrong local minimum or a corrupted frame fits far worse than the rest
-    fit = np.array(est_chi2) * dof
-    fit_thr = float(chi2_dist.ppf(1.0 - outlier_alpha / len(ids), dof)
-                    * max(1.0, float(np.median(fit)) / chi2_dist.median(dof)))
-    bad_fit = fit > fit_thr
-    if bad_fit.any() and (~bad_fit).sum() >= 3:
-        for k in np.flatnonzero(bad_fit):
-            rejected.append({"pose": ids[k], "reason": f"outlier: lens-pose fit chi2/dof {est_chi2[k]:.3g} above the "
-                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {fit_thr / dof:.3g}"})
-        keep_fit = np.flatnonzero(~bad_fit)
-        ids = [ids[k] for k in keep_fit]
-        A, B, C, est_chi2 = ([v[k] for k in keep_fit] for v in (A, B, C, est_chi2))
-    A, B, C = np.array(A), np.array(B), np.array(C)
-    noise = robot.noise
-    he = _solve(A, B, C, noise)
-    # robust outlier test on the per-pose residual chi2 (scaled by the median / its expectation)
-    scale = max(1.0, float(np.median(he.residual_chi2)) / chi2_dist.median(6))
-    thr = _threshold(len(ids), scale, outlier_alpha)
-    first_chi2 = he.residual_chi2.copy()
-    out = first_chi2 > thr
-    keep = ~out
-    if out.any() and keep.sum() >= 3:
-        he = _solve(A[keep], B[keep], C[keep], noise)
-    else:
-        keep = np.ones(len(ids), bool)
-    chi2_final = dict(zip(np.array(ids)[keep].tolist(), he.residual_chi2.tolist()))
-    per_pose = []
-    for k, i in enumerate(ids):
-        per_pose.append({"pose": i, "handeye_chi2": chi2_final.get(i, float(first_chi2[k])), "estimate_chi2_dof": float(est_chi2[k]),
-                         "outlier": bool(out[k])})
-        if not keep[k]:
-            rejected.append({"pose": i, "reason": f"outlier: hand-eye residual chi2 {first_chi2[k]:.3g} above the "
-                             f"robust {100 * (1 - outlier_alpha):.1f} % threshold {thr:.3g}"})
-    used = tuple(np.array(ids)[keep].tolist())
-    p = float(chi2_dist.sf(he.chi2, he.dof)) if he.dof > 0 else float("nan")
-    warns = list(he.warnings)
-    if he.dof > 0 and p < 1e-3:
-        warns.append(f"model check failed: chi2/dof = {he.chi2_dof:.3g} (p = {p:.2g}): the residuals exceed the "
-                     "noise model; the lens as built may differ from its design (a joint as-built calibration "
-                     "estimates it) or the robot/sensor noise is larger than assumed; the reported 1-sigma are "
-                     "then too small")
-    m_fit = float(np.median(est_chi2))
-    fit_dof = len(model.modes) - 6
-    if fit_dof > 0 and m_fit > chi2_dist.ppf(0.999, fit_dof) / fit_dof:
-        warns.append(f"lens-pose fits: median chi2/dof = {m_fit:.3g} over {fit_dof} DOF: the measured wavefronts do "
-                     "not match the design's model (lens as built, bench pupil/wavelength, or sensor noise)")
-    return CalibrationResult(X=he.X, Z=he.Z, handeye=he, poses_used=used, poses_rejected=tuple(rejected),
-                             per_pose=tuple(per_pose), chi2=float(he.chi2), dof=int(he.dof),
-                             chi2_dof=float(he.chi2_dof), p_value=p, method="two-stage", robot=robot.name,
-                             warnings=tuple(warns), outlier_threshold=thr)
-
-
-def no_tolerance_model(tolerances) -> bool:
-    """True for tolerances None or "none" (any case): no as-built lens prior."""
-    return tolerances is None or (isinstance(tolerances, str) and tolerances.strip().lower() == "none")
-
-
-def _fallback(data: SessionData, reason: str, **kw) -> CalibrationResult:
-    r = two_stage(data, **kw)
-    w = (f"the joint as-built calibration could not run ({reason}); fell back to the two-stage pipeline, "
-         "which assumes the lens as designed",)
-    return replace(r, warnings=w + tuple(r.warnings),
-                               extra={**r.extra, "fallback": {"from": "joint", "reason": reason}})
-
-
-def joint(data: SessionData, *, tolerances="default", **kw) -> CalibrationResult:
-    """Joint as-built calibration of a matched session (``session_joint.joint_session``)
-    started from the two-stage solution and from the cell's nominal X, Z. Falls back to
-    ``two_stage`` (method "two-stage", a warning, and ``extra["fallback"]`` = {"from":
-    "joint", "reason"}) when it cannot run: no tolerance model (tolerances None or
-    "none") or the joint fit fails (CalibrationError, e.g. no start lights 3 poses).
-    A tolerance file that cannot be read stays an error (the user's mistake)."""
-    if no_tolerance_model(tolerances):
-        return _fallback(data, "no tolerance model for the as-built lens prior (tolerances: none)", **kw)
-    try:
-        return joint_session(data, start=two_stage, tolerances=tolerances, **kw)
-    except CalibrationError as e:
-        return _fallback(data, f"the joint fit failed: {e}", **kw)
-
-
-CALIBRATION_METHODS["joint"] = joint
-CALIBRATION_METHODS["two-stage"] = two_stage
+    if method not in METHODS:
+        raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
+    data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, wfs_header=wfs_header,
+                         pose_pattern=pose_pattern, reference_pose=reference_pose)
+    return run(data, method, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)

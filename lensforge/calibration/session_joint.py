@@ -2,8 +2,8 @@
 
 The joint maximum-likelihood calibration (``joint.joint_calibrate``) on the raw
 Zernike vectors and the recorded flange poses is run from EVERY start and the best
-fit kept (``best_joint_fit``): the X, Z of a start method (``session.two_stage``, given
-by ``session.joint``) and the robot program's nominal X, Z (the cell's). Running both
+fit kept (``best_joint_fit``): the X, Z of a start method (``pipeline.two_stage``, given
+by ``pipeline.joint``) and the robot program's nominal X, Z (the cell's). Running both
 is needed because the chi2 test does not flag every wrong minimum: when the as-built
 lens fools the two-stage pipeline (seen on 3 of 20 default-tolerance sessions, e.g. Z 92 mm
 off), its start lights only 4 of 12 poses and the fit on those 4 passes the chi2 test
@@ -27,19 +27,17 @@ two-stage test) rejects poses and refits once.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
 from ..errors import CalibrationError, LensforgeError
-from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+from ..asbuilt.tolerances import Tolerances, resolve_tolerances
 from ..optics.pose import invert_poses, matrix_to_pose
 from .joint import JointProblem, joint_calibrate
 from ..asbuilt.lens_params import parameterise
-from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, std_dict
+from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, robust_chi2_threshold, std_dict
 
-__all__ = ["JointFrames", "best_joint_fit", "joint_session", "resolve_tolerances"]
+__all__ = ["JointFrames", "best_joint_fit", "joint_session"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,24 +55,15 @@ class JointFrames:
     warnings: tuple = field(default=())
 
 
-def resolve_tolerances(tolerances) -> tuple[Tolerances, str]:
-    """(Tolerances, label) of "default" / None (the package's default file), a TOML path or Tolerances."""
-    if tolerances is None or (isinstance(tolerances, str) and tolerances == "default"):
-        return load_tolerances(DEFAULT_TOLERANCES_FILE), str(DEFAULT_TOLERANCES_FILE)
-    if isinstance(tolerances, Tolerances):
-        return tolerances, "given Tolerances"
-    return load_tolerances(tolerances), str(Path(tolerances))
-
-
-def _per_pose(bench, param, res, z, A, Tn, robot_cov):
+def _per_pose(bench, param, res, z, A, Tn, robot_cov, measurement=None):
     """(zernike chi2 (n,), robot chi2 (n,)) of the used poses at the estimate."""
-    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True)
+    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True, measurement)
     r = pb.residuals(res.X, res.Z, res.theta, res.robot_errors)[0]
     return np.sum(r * r, axis=1), np.sum((res.robot_errors @ pb.WA.T) ** 2, axis=1)
 
 
 def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, robot_cov, *, alpha: float = OUTLIER_ALPHA,
-                   params=None):
+                   params=None, measurement=None):
     """(result, parameterisation, start index) of the best joint fit over ``starts``
     [(X0, Z0), ...] (module docstring): among the fits the chi2 test accepts, the one
     using most poses, then the lowest cost; if the test flags every fit, the lowest
@@ -89,7 +78,8 @@ def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, rob
         else:
             param = params[i]
         try:
-            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, alpha=alpha)
+            res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, alpha=alpha,
+                                  measurement=measurement)
         except CalibrationError as e:
             error = e
             continue
@@ -107,22 +97,30 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
     """Joint as-built calibration of a matched session (module docstring).
 
     start: a calibration method (SessionData -> CalibrationResult, e.g.
-    ``session.two_stage``) whose X, Z start the fit (None: the cell's nominal X, Z only);
+    ``pipeline.two_stage``) or its result on the same data, whose X, Z start the fit
+    (None: the cell's nominal X, Z only);
     tolerances: the tolerance model of theta's prior ("default": the package's file,
     a TOML path or Tolerances); recorded in the result."""
     tol, tol_label = resolve_tolerances(tolerances)
-    model, scene, robot = data.model, data.scene, data.robot
+    if tol is None:
+        raise CalibrationError("joint calibration: no tolerance model for the as-built lens prior")
+    model, scene = data.model, data.scene
     bench, lens, Tn = model.bench, model.lens, scene.T_SO_nominal
-    robot_cov = robot.noise.cov
-    starts, warns = [], []
-    try:
-        if start is not None:
+    robot_cov = scene.noise.cov
+    starts, warns, start_names = [], [], []
+    if isinstance(start, CalibrationResult):
+        starts.append((start.X, start.Z))
+        start_names.append(f"{start.method} solution")
+    elif start is not None:
+        try:
             ts = start(data, outlier_alpha=outlier_alpha, progress=progress)
             starts.append((ts.X, ts.Z))
-    except LensforgeError as e:
-        warns.append(f"{start.__name__} start failed ({e}); the joint fit starts from the robot cell's nominal X, Z")
+            start_names.append(f"{start.__name__} solution")
+        except LensforgeError as e:
+            warns.append(f"{start.__name__} start failed ({e}); the joint fit starts from the robot cell's "
+                         "nominal X, Z")
     starts.append((scene.X, scene.Z))
-    start_names = ([f"{start.__name__} solution"] if len(starts) == 2 else []) + ["the cell's nominal X, Z"]
+    start_names.append("the cell's nominal X, Z")
     ids = np.array(data.ids)
     rejected = list(data.rejected)
     keep = np.ones(len(ids), bool)
@@ -131,20 +129,20 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
     for attempt in range(2):
         if attempt == 0:
             res, param, i_best = best_joint_fit(bench, lens, tol, data.z, data.A, Tn, starts, robot_cov,
-                                                alpha=outlier_alpha)
+                                                alpha=outlier_alpha, measurement=data.measurement)
         else:  # outliers left out: refit from the estimate (the basin is found), same theta directions
             res, param, _ = best_joint_fit(bench, lens, tol, data.z[keep], data.A[keep], Tn, [(res.X, res.Z)],
-                                           robot_cov, alpha=outlier_alpha, params=[param])
+                                           robot_cov, alpha=outlier_alpha, params=[param],
+                                           measurement=data.measurement)
         kept = np.flatnonzero(keep)
         for k in kept[~res.used]:
             rejected.append({"pose": str(ids[k]), "reason": "unlit in the joint fit: at its start, or at the "
                              "pupil's edge on its way to the minimum (left out)"})
         keep[kept[~res.used]] = False
         used_idx = np.flatnonzero(keep)
-        zc, rc = _per_pose(bench, param, res, data.z[used_idx], data.A[used_idx], Tn, robot_cov)
+        zc, rc = _per_pose(bench, param, res, data.z[used_idx], data.A[used_idx], Tn, robot_cov, data.measurement)
         m = data.z.shape[1]
-        thr = float(chi2_dist.ppf(1.0 - outlier_alpha / len(used_idx), m)
-                    * max(1.0, float(np.median(zc)) / chi2_dist.median(m)))
+        thr = robust_chi2_threshold(zc, m, outlier_alpha)
         out = zc > thr
         if attempt == 0 and out.any() and (~out).sum() >= 3:
             for j in np.flatnonzero(out):
@@ -178,4 +176,4 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
     return CalibrationResult(X=res.X, Z=res.Z, handeye=frames, poses_used=tuple(ids[used_idx].tolist()),
                              poses_rejected=tuple(rejected), per_pose=per_pose, chi2=float(res.chi2),
                              dof=int(res.dof), chi2_dof=float(res.chi2 / res.dof), p_value=float(res.p_value),
-                             method="joint", robot=robot.name, warnings=tuple(warns), extra=extra)
+                             method="joint", robot=data.robot_name, warnings=tuple(warns), extra=extra)

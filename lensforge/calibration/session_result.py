@@ -10,12 +10,15 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from ..optics.shack_hartmann import ForwardModel
 from . import formats
+from .model_check import ModelCheck, check_chi2
 from .robot import RobotModel, Scene
 
-__all__ = ["CalibrationResult", "SessionData", "frame_dict", "std_dict", "OUTLIER_ALPHA", "SCHEMA_VERSION"]
+__all__ = ["CalibrationResult", "SessionData", "frame_dict", "std_dict", "robust_chi2_threshold", "OUTLIER_ALPHA",
+           "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
 
@@ -74,7 +77,11 @@ class CalibrationResult:
     handeye: the final HandEyeResult (cov_X, cov_Z right perturbations, see handeye);
     poses_used: ids in the solve; poses_rejected: [{"pose", "reason"}]; per_pose:
     [{"pose", "handeye_chi2", "estimate_chi2_dof", "outlier"}] of every estimated pose;
-    p_value: of the chi2 model check; warnings; method; robot; bench (as measured)."""
+    p_value: of the chi2 model check; warnings; method; robot; bench (as measured).
+
+    model_check / valid / check_failure: the verdict of ``model_check.check_chi2`` on
+    (chi2, dof): a result that fails it (valid False) is not a calibration; its files()
+    hold the diagnostics but no easy_handeye.yaml."""
 
     X: np.ndarray
     Z: np.ndarray
@@ -91,13 +98,33 @@ class CalibrationResult:
     warnings: tuple = field(default=())
     outlier_threshold: float = float("nan")
     extra: dict = field(default_factory=dict)
+    estimates: tuple = field(default=())  # two-stage: (id, lens pose (6,), cov (6, 6)) of each used pose
+
+    @property
+    def model_check(self) -> ModelCheck:
+        """The chi2 model check of the final fit (``model_check.check_chi2``)."""
+        return check_chi2(self.chi2, self.dof, what=f"{self.method} calibration")
+
+    @property
+    def valid(self) -> bool:
+        """False when the fit fails its model check: then it is not a calibration."""
+        return self.model_check.passed
+
+    @property
+    def check_failure(self) -> str | None:
+        """Why the model check failed (None when it passed)."""
+        mc = self.model_check
+        return None if mc.passed else mc.reason
 
     def to_json(self) -> dict:
-        """The stable --json keys: schema_version, Z, X, chi2_dof, poses_used, poses_rejected,
-        method, and the method's own keys (``extra``; joint: tolerances, p_value,
-        lens_parameters, ...)."""
+        """The stable --json keys: schema_version, valid, check_failure, Z, X, chi2_dof,
+        poses_used, poses_rejected, method, and the method's own keys (``extra``; joint:
+        tolerances, p_value, lens_parameters, ...; diagnosis: the likely mistake after a
+        failed check)."""
         return {
             "schema_version": SCHEMA_VERSION,
+            "valid": self.valid,
+            "check_failure": self.check_failure,
             "Z": frame_dict(self.Z, self.handeye.cov_Z),
             "X": frame_dict(self.X, self.handeye.cov_X),
             "chi2_dof": float(self.chi2_dof),
@@ -115,6 +142,7 @@ class CalibrationResult:
                                           else None),
                 "observable": bool(self.handeye.observable),
                 "null_directions": list(self.handeye.null_directions),
+                "model_check": self.model_check.to_dict(),
                 "per_pose": list(self.per_pose), "warnings": list(self.warnings),
                 "std_convention": "translation error and rotation-error vector of R_est R_true^T, parent frame "
                                   "(Z: robot base {W}; X: flange {E}); cov (mm, rad)^2"}
@@ -125,6 +153,11 @@ class CalibrationResult:
         lines = [f"lensforge calibration ({self.method}, {self.robot}): {len(self.poses_used)} poses used, "
                  f"{len(self.poses_rejected)} rejected",
                  f"chi2/dof = {self.chi2_dof:.3g} (dof {self.dof}, p = {self.p_value:.3g})"]
+        if not self.valid:
+            lines.insert(0, f"NOT A CALIBRATION: {self.check_failure}; no easy_handeye.yaml is written")
+            dx = self.extra.get("diagnosis")
+            if dx:
+                lines.insert(1, f"likely mistake: {dx['message']}")
         lp = self.extra.get("lens_parameters")
         if lp is not None:
             lines.append(f"as-built lens: {len(lp['theta'])} parameters from {self.extra['tolerances']}, "
@@ -157,15 +190,32 @@ class CalibrationResult:
 
         return png_bytes(plot_calibration_residuals(self))
 
-    def files(self) -> dict:
-        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, summary.txt, residuals.png."""
-        return {"calibration.json": formats.dumps_json(self.to_dict()) + "\n",
-                "easy_handeye.yaml": formats.easy_handeye_yaml(self.Z),
-                "summary.txt": self.summary(),
-                "residuals.png": self.residual_plot()}
+    def files(self, accept_failed_check: bool = False) -> dict:
+        """{file name: text | bytes}: calibration.json, easy_handeye.yaml, the ROS 2 launch file
+        (``ros2.static_transform_launch``: Z and X), summary.txt, residuals.png; without the two
+        files a robot cell would load (easy_handeye.yaml, the launch file) when the model check
+        failed (unless ``accept_failed_check``, for research: the JSON still says "valid": false)."""
+        from .ros2 import LAUNCH_FILE_NAME, static_transform_launch
+
+        out = {"calibration.json": formats.dumps_json(self.to_dict()) + "\n"}
+        if self.valid or accept_failed_check:
+            out["easy_handeye.yaml"] = formats.easy_handeye_yaml(self.Z)
+            out[LAUNCH_FILE_NAME] = static_transform_launch(self.Z, self.X)
+        out["summary.txt"] = self.summary()
+        out["residuals.png"] = self.residual_plot()
+        return out
 
 
 OUTLIER_ALPHA = 1e-3  # family-wise false-alarm rate of the outlier test
+
+
+def robust_chi2_threshold(chi2_values, dof: int, alpha: float = OUTLIER_ALPHA) -> float:
+    """The outlier threshold of every calibration method: the Bonferroni 1 - alpha/n quantile of
+    the chi2(dof) law over n values, scaled up by their median over its expectation, so that an
+    overall misfit (a lens as built, a noise model too small) does not reject every pose."""
+    v = np.asarray(chi2_values, dtype=float)
+    scale = max(1.0, float(np.median(v)) / chi2_dist.median(dof)) if v.size else 1.0
+    return float(chi2_dist.ppf(1.0 - alpha / max(v.size, 1), dof) * scale)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,12 +225,18 @@ class SessionData:
     ids (n,); A: (n, 4, 4) recorded flange poses (mm); z: (n, m) measured Zernikes (um,
     Noll modes model.modes); model: ForwardModel of the design's lens on the bench as
     measured (WFS order, pupil, wavelength); robot; scene: the robot's nominal cell
-    (initial guesses); rejected: [{"pose", "reason"}] so far (unmatched ids)."""
+    (initial guesses; its ``noise`` is the robot's repeatability every method uses);
+    rejected: [{"pose", "reason"}] so far (unmatched ids, poses the sensor did not see)."""
 
     ids: tuple
     A: np.ndarray
     z: np.ndarray
     model: ForwardModel
-    robot: RobotModel
+    robot: RobotModel | None
     scene: Scene
     rejected: tuple = ()
+    measurement: object = None  # calibration.measurement.Measurement of z (None: Zernikes; model is its model)
+
+    @property
+    def robot_name(self) -> str:
+        return self.robot.name if self.robot is not None else self.scene.robot.name

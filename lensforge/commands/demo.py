@@ -43,7 +43,7 @@ def demo(
     from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, load_tolerances
     from ..optics.bench import Bench
     from ..verification.statistics import format_counts
-    from ..verification.study import verify
+    from ..verification.study import StudyConfig, verify
 
     console = Console(stderr=True, width=160)
     check_seed(seed)
@@ -93,7 +93,7 @@ def demo(
         n = (2 if codesign else 4) if quick else (8 if codesign else 20)
         store = work / "demo-study.sqlite"
         res = verify(design, load_tolerances(DEFAULT_TOLERANCES_FILE), n_lenses=n, seed=seed, bench=bench,
-                     n_poses=12 if quick else 24, workers=0, store=store, calibration="joint")
+                     config=StudyConfig(n_poses=12 if quick else 24, calibration="joint"), workers=0, store=store)
         s = res.summary
 
         def fmt(d, unit):

@@ -10,7 +10,7 @@ from typing import List, Optional
 import numpy as np
 import typer
 
-from ..errors import ConfigError
+from ..errors import CalibrationError, ConfigError
 from ..fileio import check_output, staged_dir, write_atomic
 from ..progress import progress_bar
 from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, info, load_bench_arg
@@ -69,24 +69,65 @@ def estimate_cmd(
     measurement: Path = typer.Option(..., "--measurement", "-m", help="WFS Zernike CSV/JSON (one pose, or --pose)"),
     pose: Optional[str] = typer.Option(None, "--pose", help="pose id to use when the file holds several"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
+    wfs_header: str = typer.Option("error", "--wfs-header",
+                                   help="when the WFS file's header (wavelength, pupil) contradicts the bench: "
+                                        "error (default), file (use the file's values) or bench (the bench's)"),
+    accept_failed_check: bool = typer.Option(False, "--accept-failed-check",
+                                             help="report a pose whose fit fails its chi2 model check with exit 0 "
+                                                  "(research; the JSON keeps \"valid\": false); default: exit 3"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable result on stdout"),
 ) -> None:
     """Estimate one lens pose with its covariance.
 
-    The pose is relative to the lens's nominal placement: translation (um), rotation (mrad)."""
+    The pose is relative to the lens's nominal placement: translation (um), rotation (mrad).
+    A fit that fails its chi2 model check exits 3, naming the likely mistake where one is found."""
+    from ..calibration.model_check import check_chi2
     from ..calibration.session import estimate
     from ..optics.pose import DOF_NAMES
 
-    r = estimate(design, measurement, bench=bench_arg(bench), pose_id=pose)
+    try:
+        r = estimate(design, measurement, bench=bench_arg(bench), pose_id=pose, wfs_header=wfs_header)
+    except CalibrationError as exc:  # no pose found: the usual convention mistakes are the usual cause
+        if "no lens pose found" in str(exc):
+            from ..calibration.diagnosis import diagnose_estimate
+
+            dx = diagnose_estimate(design, measurement, float("inf"), bench=bench_arg(bench), pose_id=pose,
+                                   wfs_header=wfs_header)
+            if dx.mistake is not None:
+                raise ConfigError(f"{' '.join(str(exc).split())}; {dx.mistake.message}") from None
+        raise
     e = r["estimate"]
+    mc = check_chi2(e.chi2, e.dof, what="pose estimate")
     std = e.std
-    info(f"pose {r['pose_id']}: chi2/dof = {e.chi2_dof:.3g}, {'converged' if e.converged else 'NOT converged'}")
+    state = "converged" if e.converged else "NOT converged"
+    info(f"pose {r['pose_id']}: chi2/dof = {e.chi2_dof:.3g}, {state}"
+         + ("" if mc.passed else f"; MODEL CHECK FAILED (above {mc.threshold_chi2_dof:.3g}): not a pose estimate"))
     for k, name in enumerate(DOF_NAMES):
         if k < 3:
             info(f"  {name} = {e.pose[k] * 1e3:10.2f} um  +- {std[k] * 1e3:.2f} um")
         else:
             info(f"  {name} = {e.pose[k] * 1e3:10.4f} mrad +- {std[k] * 1e3:.4f} mrad")
+    mistake = dx = None
+    if not mc.passed and not accept_failed_check:
+        from ..calibration.diagnosis import diagnose_estimate
+
+        dx = diagnose_estimate(design, measurement, e.chi2_dof, bench=bench_arg(bench), pose_id=r["pose_id"],
+                               wfs_header=wfs_header)
+        mistake = dx.mistake
     if json_out:
-        emit_json({"schema_version": 1, "pose_id": r["pose_id"], **e.to_dict(),
+        emit_json({"schema_version": 1, "pose_id": r["pose_id"], "valid": mc.passed,
+                   "check_failure": None if mc.passed else mc.reason, "model_check": mc.to_dict(),
+                   **({"diagnosis": dx.to_dict()} if dx is not None else {}), **e.to_dict(),
                    "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in e.cov],
                    "cov_units": "mm and rad, pose vector (tx, ty, tz, rx, ry, rz)"})
+    if not mc.passed:
+        if accept_failed_check:
+            info(f"warning: {mc.reason}; reported because of --accept-failed-check")
+            return
+        from ..errors import ModelCheckError
+
+        head = f"model check failed (chi2/dof {e.chi2_dof:.3g})"
+        raise ModelCheckError(f"{head}; {mistake.message}" if mistake is not None else
+                              f"{head}: the measured wavefront does not fit the design's model at any pose; none of "
+                              "the usual mistakes (Zernike order, waves, sign, another design) explains it; check the "
+                              "lens as built, the bench file (pupil, wavelength) and the sensor's noise")

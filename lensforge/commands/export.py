@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from contextlib import contextmanager
 from pathlib import Path
 
 import typer
@@ -12,6 +13,7 @@ from ..errors import ConfigError
 from ..manufacturing.features import FeatureSpec
 from ..fileio import check_output, dumps_json, staged_dir, write_atomic
 from ..optics.lens import resolve_lens
+from ..progress import progress_bar
 from ._common import emit_json, info
 
 MAX_TRIANGLES = 1e7  # ~2 GB in trimesh and OCP together; far finer than any printer resolves
@@ -24,34 +26,16 @@ def mesh_triangle_estimate(radius_mm: float, chord_tol_mm: float) -> float:
     return 2.0 * n_rim * max(8.0, n_rim / (2 * math.pi))
 
 
-class _StepProgress:
-    """A rich progress bar over named steps on stderr; yields the callback that starts each step."""
-
-    def __init__(self, steps: list[str], enabled: bool = True):
-        self.steps, self.enabled, self._p, self._task = list(steps), enabled, None, None
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._p = Progress(TextColumn("export: {task.description:<16}"), BarColumn(), MofNCompleteColumn(),
-                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
-            self._p.start()
-            self._task = self._p.add_task(self.steps[0] if self.steps else "", total=len(self.steps))
-        return self._tick
-
-    def _tick(self, name: str) -> None:
-        if self._p is None:
-            return
-        done = self.steps.index(name) if name in self.steps else 0
-        self._p.update(self._task, description=name, completed=done)
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.update(self._task, completed=len(self.steps))
-            self._p.stop()
-        return False
+@contextmanager
+def _steps(steps: list[str], enabled: bool = True):
+    """The one progress bar (``progress.progress_bar``) over named export steps; yields the
+    callback that starts each step."""
+    with progress_bar(len(steps), f"export: {steps[0] if steps else ''}", enabled=enabled) as bar:
+        def tick(name: str) -> None:
+            bar.update(steps.index(name) if name in steps else 0)
+            bar.describe(f"export: {name}")
+        yield tick
+        bar.update(len(steps))
 
 
 def export_cmd(
@@ -113,7 +97,7 @@ def export_cmd(
     from ..manufacturing.report import export_lens, export_steps  # imports OCP (~0.8 s): only exports pay it
 
     steps = export_steps(stl, step, threemf, optiland, slicer)
-    with staged_dir(out) as st, _StepProgress(steps, enabled=not no_progress and not json_out) as tick:
+    with staged_dir(out) as st, _steps(steps, enabled=not no_progress and not json_out) as tick:
         # STL, STEP, 3MF, optiland model and report appear together or not at all
         rep = export_lens(lens, st.tmp, stem, stl=stl, step=step, features=spec, layer_mm=layer / 1000.0,
                           chord_tol_mm=chord_tol, run_slicer=slicer, threemf=threemf, write_report=False,

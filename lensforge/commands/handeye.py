@@ -26,12 +26,15 @@ from typing import Optional
 import numpy as np
 import typer
 
-from ..errors import ConfigError
+from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json, read_json
 from ..input_checks import POSE_TRANSLATION, Num, check_header, number, number_array
 from ._common import emit_json, info
 
 _NOISE_KEYS = ("robot_sigma_trans_mm", "robot_sigma_rot_deg", "lens_sigma_trans_mm", "lens_sigma_rot_deg")
+# ASSUMPTION: 1-sigma beyond 10 mm or 10 deg is no calibration noise but a unit or typing mistake
+_NOISE_MAX = {"robot_sigma_trans_mm": 10.0, "robot_sigma_rot_deg": 10.0, "lens_sigma_trans_mm": 10.0,
+              "lens_sigma_rot_deg": 10.0}
 
 
 def _matrices(name: str, key: str, v, scale: float) -> np.ndarray:
@@ -71,8 +74,10 @@ def noise_model(data: dict, name: str, n: int) -> tuple:
         vals = {}
         for k in _NOISE_KEYS:
             v = nz.get(k, 0.0)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
-                raise ConfigError(f"{name}:noise.{k}: must be a number >= 0, got {v!r}")
+            top = _NOISE_MAX[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not 0 <= v <= top:
+                raise ConfigError(f"{name}:noise.{k}: must be a number from 0 to {top:g} "
+                                  f"({'mm' if k.endswith('_mm') else 'deg'}, 1-sigma per axis), got {v!r}")
             vals[k] = float(v)
         if vals["robot_sigma_trans_mm"] or vals["robot_sigma_rot_deg"]:
             sigma = np.diag([vals["robot_sigma_trans_mm"] ** 2] * 3 + [np.radians(vals["robot_sigma_rot_deg"]) ** 2] * 3)
@@ -120,6 +125,34 @@ def load_poses(path: str | Path) -> dict:
     return out
 
 
+NOISE_FILE_KEYS = _NOISE_KEYS + ("noise", "cov_A", "cov_B", "sigma_A", "sigma_B", "schema_version", "kind")
+
+
+def load_noise_file(path: Path, n: int) -> tuple:
+    """(sigma, cov_B) of a --noise JSON file: the flat keys --help shows
+    ({"robot_sigma_trans_mm": 0.02, ...}), the same under "noise", or cov_A / cov_B (and the
+    legacy sigma_A / sigma_B). Unknown keys and negative sigmas are refused; a file that sets
+    no noise at all too."""
+    data = read_json(path, "noise file")
+    name = Path(path).name
+    if not isinstance(data, dict):
+        raise ConfigError(f"noise file {path}: expected a JSON object with keys {', '.join(_NOISE_KEYS)}")
+    unknown = sorted(set(data) - set(NOISE_FILE_KEYS))
+    if unknown:
+        raise ConfigError(f"{name}: unknown key(s) {', '.join(unknown)}; expected {', '.join(_NOISE_KEYS)} "
+                          "(1-sigma per axis) or cov_A / cov_B")
+    flat = {k: data[k] for k in _NOISE_KEYS if k in data}
+    if flat and "noise" in data:
+        raise ConfigError(f"{name}: give the sigmas either at the top level or under \"noise\", not both")
+    if flat:
+        data = {**{k: v for k, v in data.items() if k not in _NOISE_KEYS}, "noise": flat}
+    sigma, cov_B = noise_model(data, name, n)
+    if sigma is None and cov_B is None:
+        raise ConfigError(f"{name}: no noise given (every sigma is 0 or missing); give "
+                          f"{', '.join(_NOISE_KEYS)} or leave out --noise to estimate it from the residuals")
+    return sigma, cov_B
+
+
 def load_pose_files(robot_poses: Path, lens_poses: Path) -> tuple[np.ndarray, np.ndarray, list]:
     """A and B (mm) matched by id from two pose files; ids in one file only are left out."""
     from ..calibration.formats import read_robot_poses
@@ -131,6 +164,51 @@ def load_pose_files(robot_poses: Path, lens_poses: Path) -> tuple[np.ndarray, np
     A = ta.T[[ta.ids.index(i) for i in common]]
     B = tb.T[[tb.ids.index(i) for i in common]]
     return A, B, common
+
+
+def diagnose_handeye(kw: dict, method: str, failed) -> dict | None:
+    """The likely mistake behind a hand-eye solve that fails its model check: re-solve with A
+    or B in other units, inverted, or A and B swapped (each a fraction of a second); the
+    first whose solve passes, as {"mistake", "message", "chi2_dof_before", "chi2_dof_after"}."""
+    from ..calibration.handeye import solve_handeye
+    from ..calibration.model_check import check_chi2
+    from ..optics.pose import invert_poses
+
+    A, B = kw["A"], kw["B"]
+
+    def scaled(M, k):
+        M = M.copy()
+        M[:, :3, 3] *= k
+        return M
+    tries = [("units m", "the fit passes if the poses are read in m: the file's units are probably wrong",
+              scaled(A, 1e3), scaled(B, 1e3)),
+             ("units mm", "the fit passes if the poses are read in mm: the file's units are probably wrong",
+              scaled(A, 1e-3), scaled(B, 1e-3)),
+             ("A units", "the fit passes if A (robot) is read in other units (x1000)", scaled(A, 1e3), B),
+             ("A units", "the fit passes if A (robot) is read in other units (/1000)", scaled(A, 1e-3), B),
+             ("B units", "the fit passes if B (lens) is read in other units (x1000)", A, scaled(B, 1e3)),
+             ("B units", "the fit passes if B (lens) is read in other units (/1000)", A, scaled(B, 1e-3)),
+             ("A inverted", "the fit passes if A is inverted: give the flange in the robot base (^W T_E), not "
+                            "the base in the flange", invert_poses(A), B),
+             ("B inverted", "the fit passes if B is inverted: give the lens in the sensor frame (^S T_O)",
+              A, invert_poses(B)),
+             ("A and B swapped", "the fit passes with A and B swapped: A is the robot flange, B the lens", B, A)]
+    best = None
+    for name, message, A2, B2 in tries:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                r = solve_handeye(A2, B2, method=method, sigma=kw["sigma"], cov_B=kw["cov_B"], on_degenerate="warn")
+        except (LensforgeError, np.linalg.LinAlgError, ValueError):  # a try that cannot be solved explains nothing
+            continue
+        # passing, and closest to the noise model (chi2/dof ~ 1): rescaling A and B together also
+        # "passes", with the noise then far too large for the numbers (chi2/dof << 1)
+        if check_chi2(r.chi2, r.dof).passed and r.chi2_dof > 0:
+            score = abs(np.log(r.chi2_dof))
+            if best is None or score < best[0]:
+                best = (score, {"mistake": name, "message": message, "chi2_dof_before": float(failed.chi2_dof),
+                                "chi2_dof_after": float(r.chi2_dof)})
+    return None if best is None else best[1]
 
 
 def handeye_cmd(
@@ -151,6 +229,10 @@ def handeye_cmd(
     obs_limit_rad: float = typer.Option(0.01, "--obs-limit-rad",
                                         help="the same for rotations (rad)"),
     plot: Path = typer.Option(None, "--plot", help="write the residuals per pose as a PNG here"),
+    accept_failed_check: bool = typer.Option(False, "--accept-failed-check",
+                                             help="write the result of a solve that fails its chi2 model check as "
+                                                  "a calibration anyway (research); default: exit 3, no "
+                                                  "easy_handeye.yaml"),
 ) -> None:
     """Robot-world-hand-eye calibration A_i X = Z B_i.
 
@@ -159,7 +241,7 @@ def handeye_cmd(
     # imported here so that `lensforge --help` stays fast (no scipy at CLI import)
     from ..calibration.formats import easy_handeye_yaml, write_bundle
     from ..calibration.handeye import solve_handeye
-    from ..calibration.session import frame_dict
+    from ..calibration.session_result import frame_dict
 
     if poses is not None and (robot_poses or lens_poses):
         raise ConfigError("handeye: give POSES.json or --robot-poses with --lens-poses, not both")
@@ -174,15 +256,19 @@ def handeye_cmd(
     if noise is not None:
         if kw["sigma"] is not None or kw["cov_B"] is not None:
             raise ConfigError(f"{noise}: the poses file already holds a noise model; give it once")
-        data = read_json(noise, "noise file")
-        if not isinstance(data, dict):
-            raise ConfigError(f"noise file {noise}: expected a JSON object")
-        kw["sigma"], kw["cov_B"] = noise_model(data, Path(noise).name, kw["A"].shape[0])
+        kw["sigma"], kw["cov_B"] = load_noise_file(noise, kw["A"].shape[0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         res = solve_handeye(kw["A"], kw["B"], method=method, sigma=kw["sigma"], cov_B=kw["cov_B"],
                             on_degenerate="warn" if allow_degenerate else "raise",
                             obs_limits=(obs_limit_mm, obs_limit_rad))
+    from ..calibration.model_check import check_chi2
+
+    mc = check_chi2(res.chi2, res.dof, what="hand-eye solve") if res.noise_model == "given" else None
+    valid = mc is None or mc.passed
+    mistake = None
+    if not valid and not accept_failed_check:
+        mistake = diagnose_handeye(kw, method, mc)
     Zf, Xf = frame_dict(res.Z, res.cov_Z), frame_dict(res.X, res.cov_X)
     info(f"hand-eye ({res.method}, {res.residuals.shape[0]} poses, noise model {res.noise_model}): "
          f"chi2/dof = {res.chi2_dof:.3g}")
@@ -198,9 +284,20 @@ def handeye_cmd(
     show("X", Xf)
     for w in res.warnings:
         info(f"warning: {w}")
-    result = {**res.to_dict(), "schema_version": 1, "pose_ids": ids, "frames": {"Z": Zf, "X": Xf}}
+    result = {**res.to_dict(), "schema_version": 1, "pose_ids": ids, "frames": {"Z": Zf, "X": Xf},
+              "valid": valid, "check_failure": None if valid else mc.reason,
+              "model_check": (mc.to_dict() if mc is not None else
+                              {"valid": True, "reason": "no noise model given: the noise is estimated from the "
+                                                        "residuals, so chi2 cannot test the fit"}),
+              **({"diagnosis": mistake} if mistake is not None else {})}
+    if not valid:
+        info(f"MODEL CHECK FAILED: {mc.reason}; not a calibration" + ("" if accept_failed_check else
+                                                                        ": no easy_handeye.yaml written"))
     if out is not None:
-        paths = write_bundle(out, {"handeye.json": dumps_json(result) + "\n", "easy_handeye.yaml": easy_handeye_yaml(res.Z)})
+        files = {"handeye.json": dumps_json(result) + "\n"}
+        if valid or accept_failed_check:
+            files["easy_handeye.yaml"] = easy_handeye_yaml(res.Z)
+        paths = write_bundle(out, files, drop=() if "easy_handeye.yaml" in files else ("easy_handeye.yaml",))
         info("files: " + ", ".join(str(v) for v in paths.values()))
     if plot is not None:
         from ..plots.calibration import plot_handeye_residuals
@@ -210,3 +307,14 @@ def handeye_cmd(
         info(f"wrote {save_figure(plot_handeye_residuals(res.residuals, res.residual_chi2, title), plot)}")
     if json_out:
         emit_json(result)
+    if not valid:
+        if accept_failed_check:
+            info(f"warning: {mc.reason}; written as a calibration because of --accept-failed-check")
+            return
+        from ..errors import ModelCheckError
+
+        head = f"model check failed (chi2/dof {res.chi2_dof:.3g})"
+        raise ModelCheckError(f"{head}; {mistake['message']}" if mistake is not None else
+                              f"{head}: the residuals exceed the given noise model; none of the usual mistakes "
+                              "(units, inverted A or B, A and B swapped) explains it; check the noise model and the "
+                              "pose files" + (f"; diagnostics in {out}" if out is not None else ""))

@@ -37,7 +37,10 @@ def plan_cmd(
     from ..calibration.formats import write_bundle
     from ..calibration.session import plan
 
+    from ..calibration.plausibility import check_poses_count
+
     check_seed(seed)
+    check_poses_count(n, "-n/--poses")
     p = plan(design, bench=bench_arg(bench), robot=robot, n=n, seed=seed, tolerances=tolerances)
     fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
     if fm == ("auto",):

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -13,11 +14,10 @@ from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, info
 
 
 def _tolerances(path):
-    from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances
+    """The --tolerances option: a TOML path, "default" (also when omitted) or "none" (noise only)."""
+    from ..asbuilt.tolerances import resolve_tolerances
 
-    if path is None:
-        return load_tolerances(DEFAULT_TOLERANCES_FILE) if Path(DEFAULT_TOLERANCES_FILE).exists() else Tolerances()
-    return load_tolerances(path)
+    return resolve_tolerances("default" if path is None else str(path))[0]
 
 
 def _fmt(v, unit, digits=3):
@@ -26,6 +26,33 @@ def _fmt(v, unit, digits=3):
 
 def _write_json(path: Path, obj) -> None:
     write_atomic(path, dumps_json(obj))
+
+
+def check_job(design, bench_path, poses: int, calibration: str, workers: int | None, option: str = "--poses",
+              plan=None) -> None:
+    """Refuse, before any work, a study or budget whose poses are out of range
+    (``plausibility.check_poses_count``), that cannot fit in memory (the estimate, per worker
+    process, ``plausibility.job_memory_bytes``), or whose --pose-plan leaves hand-eye directions
+    unobservable (identical poses, one rotation axis), naming them."""
+    import math
+    import os
+
+    from ..calibration.plausibility import check_job_memory, check_plan_motion, check_poses_count, job_memory_bytes
+    from ..calibration.robot import paper_scene
+    from ..optics.lens import resolve_lens
+
+    check_poses_count(poses, option)
+    r = resolve_lens(design)
+    bench = r.bench_or(load_bench(bench_path) if bench_path else None)
+    n_lenslets = math.pi * bench.sensor.pupil_radius_mm ** 2 / bench.sensor.pitch_mm ** 2
+    order = bench.sensor.zernike_order
+    procs = max(1, os.cpu_count() or 1) if workers is None else max(1, workers)
+    per = job_memory_bytes(poses, (order + 1) * (order + 2) // 2, int(n_lenslets) + 1,
+                           n_params=30 if calibration == "joint" else 0)
+    check_job_memory(per * procs, f"a {calibration} calibration of {poses} poses on {procs} worker(s)", option)
+    if plan is not None:
+        scene = paper_scene(bench.placement.distance_mm)
+        check_plan_motion(plan, scene.T_SO_nominal, scene.X, "--pose-plan")
 
 
 def _check_sizes(seed: int, lenses: int, workers: int | None) -> None:
@@ -48,7 +75,7 @@ def _print_errors(s: dict) -> None:
 
 def study_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
-    tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
+    tolerances: Optional[str] = typer.Option(None, "--tolerances", "-t", help="tolerance TOML, 'default' (the shipped one, also when omitted) or 'none' (noise only)"),
     lenses: int = typer.Option(1000, "--lenses", "-n", help="number of as-built lenses"),
     poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
     pose_plan: Path = typer.Option(None, "--pose-plan", help="JSON {\"poses\": [[tx, ty, tz, rx, ry, rz], ...]} "
@@ -81,6 +108,7 @@ def study_cmd(
     if plan is not None:
         poses = len(plan)
     _check_sizes(seed, lenses, workers)
+    check_job(design, bench, poses, calibration, workers, "--pose-plan" if plan is not None else "--poses", plan)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = bench_arg(str(bench)) if bench else None
     check_output(out, folder=True, need_mb=5 + lenses * 2e-3)
@@ -130,7 +158,7 @@ def budget_advice(bud) -> list[str]:
 
 def budget_cmd(
     design: str = typer.Argument(..., help="design JSON (key \"lens\") or a paper lens name"),
-    tolerances: Path = typer.Option(None, "--tolerances", "-t", help="tolerance TOML (default: the shipped one)"),
+    tolerances: Optional[str] = typer.Option(None, "--tolerances", "-t", help="tolerance TOML, 'default' (the shipped one, also when omitted) or 'none' (noise only)"),
     target_mm: float = typer.Option(0.1, "--target-mm", help="Z translation target (mm)"),
     target_deg: float = typer.Option(0.01, "--target-deg", help="Z rotation target (deg)"),
     relative: float = typer.Option(None, "--relative-to-noise",
@@ -157,7 +185,10 @@ def budget_cmd(
     from ..plots.study import plot_budget, plot_sensitivity
 
     tol = _tolerances(tolerances)
+    if tol is None:
+        raise ConfigError("--tolerances: 'none' leaves nothing to budget; give a tolerance TOML or 'default'")
     _check_sizes(seed, lenses, workers)
+    check_job(design, bench, poses, calibration, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
     b = bench_arg(str(bench)) if bench else None
     check_output(out, folder=True, need_mb=10)

@@ -85,7 +85,48 @@ def thin_history(history, n_max: int = _MAX_HISTORY) -> list:
 
 @dataclass(frozen=True)
 class Design:
-    """A lens design and its provenance (see module docstring for the fields)."""
+    """A lens design and its provenance (the module docstring describes the JSON keys).
+
+    Parameters
+    ----------
+    lens : Lens
+        The designed lens (mm).
+    bench : Bench
+        The bench it was designed on.
+    model : str
+        Surface model: 'polynomial', 'extended_polynomial', 'zernike' or 'conic'.
+    free : tuple of str
+        Names of the free parameters.
+    parameters : dict
+        {name: value} of the free parameters (mm, 1/mm, dimensionless as named).
+    bounds : dict
+        {name: (lo, hi)} search box of each free parameter.
+    criterion : str
+        'J' (paper), 'D' or 'A'.
+    weights : tuple of float
+        (w1, w2) of J.
+    constraints, feasibility, metrics : dict
+        The constraints applied, their verdicts, and the metrics of the lens (rank, kappa,
+        sigma_min, J, D, A, CRLB std per DOF in um / urad, ...).
+    method : str
+        Optimiser name.
+    seed : int or None
+        Its seed (same seed, same design).
+    settings, start : dict
+        Optimiser settings and the start point.
+    history : tuple
+        Best cost per iteration (thinned to at most 200 rows).
+    n_evals : int
+        Cost evaluations.
+    wall_time_s : float
+        Wall time, s.
+    labels : dict
+        {name: text} of the parameters.
+    lensforge_version : str
+        Version that wrote the design.
+    robust : dict or None
+        For a tolerance-robust design: the spec and the returned lens's robust cost.
+    """
 
     lens: Lens
     bench: Bench
@@ -234,12 +275,41 @@ class Design:
 
 
 def save_design(design: Design, path: str | PathLike[str]) -> Path:
-    """Write the design as JSON (atomically); returns the path."""
+    """Write the design as JSON (atomically: the file is complete or absent).
+
+    Parameters
+    ----------
+    design : Design
+        The design.
+    path : str or os.PathLike
+        Destination file.
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
     text = json.dumps(design.to_dict(), indent=2, allow_nan=False)
     return write_atomic(path, text + "\n")
 
 
 def load_design(path: str | PathLike[str]) -> Design:
-    """Read a design JSON file written by ``save_design``."""
+    """Read a design JSON file written by :func:`save_design`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The JSON file (``schema_version`` 1).
+
+    Returns
+    -------
+    Design
+        The design; ``load_design(save_design(d))`` has the same ``to_dict()`` as d.
+
+    Raises
+    ------
+    ConfigError
+        A missing file, bad JSON, schema version or field (the message names it).
+    """
     p = Path(path)
     return Design.from_dict(read_json(p, "design file"), where=f"{p.name}")

@@ -34,6 +34,7 @@ from ..errors import ConfigError, DesignError, LensforgeError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
+from ..progress import Bar, progress_bar
 from .constraints import Constraints, check_design, require_feasible, working_poses
 from .criteria import check_criterion, criterion_value
 from .design_file import Design, metrics_dict
@@ -43,7 +44,7 @@ from .robust import RobustSpec, robust_value
 from .selfcal import SelfCalSpec, plan_for, selfcal_value
 
 __all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
-           "RobustSpec", "BenchVariables", "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
+           "BenchVariables", "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
@@ -67,37 +68,6 @@ def _global_numpy_seed(seed: int):
         np.random.set_state(state)
 
 
-class _Progress:
-    """Rich progress bar on stderr (or nothing)."""
-
-    def __init__(self, enabled: bool, total: int, label: str):
-        self.enabled = enabled
-        self.total = total
-        self.label = label
-        self._p = None
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._p = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                               TimeElapsedColumn(), console=Console(stderr=True), transient=True)
-            self._p.__enter__()
-            self._task = self._p.add_task(self.label, total=self.total)
-        return self
-
-    def update(self, n: int, best: float):
-        if self._p is not None:
-            txt = f"{self.label}  best {best:.5g}" if best < INFEASIBLE else f"{self.label}  (no feasible yet)"
-            self._p.update(self._task, completed=min(n, self.total), description=txt)
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.__exit__(*exc)
-        return False
-
-
 class DesignProblem:
     """Cost function of one design run: u (unit box) -> criterion or penalty.
 
@@ -107,7 +77,7 @@ class DesignProblem:
 
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
-                 progress: _Progress | None = None, robust: RobustSpec | None = None,
+                 progress: Bar | None = None, robust: RobustSpec | None = None, label: str = "",
                  search_quadrature: int | None = None, selfcal: SelfCalSpec | None = None):
         self.bench = bench
         self.selfcal = selfcal
@@ -125,6 +95,7 @@ class DesignProblem:
         self.constraints.check_bench(bench)
         self.poses = working_poses(self.constraints)
         self.max_evals = int(max_evals)
+        self.label = label  # the progress bar's text
         self.time_limit_s = time_limit_s
         self.progress = progress
         self.n_evals = 0
@@ -187,7 +158,9 @@ class DesignProblem:
             if len(self.candidates) > 4 * _N_CANDIDATES:
                 self.candidates = sorted(self.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]
         if self.progress is not None:
-            self.progress.update(self.n_evals, self.best_cost)
+            self.progress.update(min(self.n_evals, self.max_evals))
+            self.progress.describe(f"{self.label}  best {self.best_cost:.5g}" if self.best_cost < INFEASIBLE
+                                   else f"{self.label}  (no feasible yet)")
         return cost
 
     def batch(self, U) -> np.ndarray:
@@ -539,20 +512,75 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     the current lens) and a lens step (the lens's DS over that plan, ``max_evals`` evaluations,
     the bench kept); ``settings.selfcal`` holds the plan and the bound per round.
 
-    bench: default ``Bench.default()``; model: 'polynomial', 'extended_polynomial',
-    'zernike', 'conic'; method: 'nelder-mead', 'pso', 'ga', 'cmaes'; seed: int (same
-    seed, same result); criterion: 'J' (paper), 'D' or 'A'; weights: (w1, w2) of J;
-    free / bounds: see ``parameterisation``; constraints: :class:`Constraints`;
-    max_evals: cost evaluations (default per method, DEFAULT_MAX_EVALS); start:
-    'paper' (the template lens's vector if feasible, else random), 'random' or a
-    parameter vector; n_starts: Nelder-Mead starts (the 1st from ``start``, the
-    rest random feasible); particles (PSO); population (GA, CMA-ES); sigma0: CMA-ES
-    step in the unit box; ftol: relative stopping tolerance on the cost;
-    time_limit_s: wall-clock limit; progress: rich progress bar on stderr;
-    robust: a :class:`RobustSpec` to minimise the statistic of the criterion over
-    as-built draws (common random numbers) instead of the nominal criterion; the
-    design's ``robust`` record holds the spec and the returned lens's robust cost.
-    Raises ConfigError for bad settings and DesignError for an infeasible problem.
+    Parameters
+    ----------
+    bench : Bench, optional
+        Default ``Bench.default()``.
+    model : str
+        'polynomial', 'extended_polynomial', 'zernike' or 'conic'.
+    method : str
+        'nelder-mead', 'pso', 'ga' or 'cmaes' (the registry ``METHODS``).
+    seed : int
+        Same seed, same result.
+    criterion : str
+        'J' (paper), 'D', 'A', or 'DS' (self-calibration, needs ``selfcal``).
+    weights : sequence of float
+        (w1, w2) of J.
+    free, bounds : str, sequence or dict, optional
+        Free parameters and their search box (see ``design.parameterisation``).
+    constraints : Constraints, optional
+        Thickness, TIR, lit pupil over the working range.
+    max_evals : int, optional
+        Cost evaluations (default per method, DEFAULT_MAX_EVALS).
+    start : str or numpy.ndarray
+        'paper' (the template lens's vector if feasible, else random), 'random' or a
+        parameter vector.
+    n_starts : int
+        Nelder-Mead starts (the first from ``start``, the rest random feasible).
+    particles : int
+        PSO swarm size.
+    population : int, optional
+        GA and CMA-ES population.
+    sigma0 : float
+        CMA-ES step in the unit box.
+    ftol : float, optional
+        Relative stopping tolerance on the cost.
+    time_limit_s : float, optional
+        Wall-clock limit, s.
+    progress : bool
+        Progress bar on stderr.
+    template : Lens, optional
+        The lens whose fixed parameters the design keeps (default: the paper's lens of ``model``).
+    robust : RobustSpec, optional
+        Minimise the statistic of the criterion over as-built draws (common random
+        numbers) instead of the nominal criterion; the design's ``robust`` record holds
+        the spec and the returned lens's robust cost.
+    bench_vars : BenchVariables, optional
+        Bench variables designed with the lens (co-design, see above); None or none free:
+        the bench is kept.
+    lens_evals : int, optional
+        Co-design: evaluations of the lens-only first step (default CODESIGN_LENS_EVALS).
+    search_quadrature : int, optional
+        Sub-aperture points per lenslet side during the search (default: the bench's; 1
+        when co-designing); the result is always scored on the bench's own rule.
+    start_lens, start_bench : Lens, Bench, optional
+        Where a 'paper'/'template' start begins (internal to the co-design steps).
+    selfcal : SelfCalSpec, optional
+        Criterion 'DS': the tolerance model, plan box and robot of the self-calibration bound.
+    selfcal_rounds : int
+        Criterion 'DS': plan step + lens step rounds.
+
+    Returns
+    -------
+    Design
+        The best feasible design with its metrics and provenance.
+
+    Raises
+    ------
+    ConfigError
+        Bad settings.
+    DesignError
+        An infeasible problem.
     """
     bench = bench or Bench.default()
     meth = check_method(method)
@@ -608,8 +636,8 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     rng = np.random.default_rng(seed)
     label = f"{meth} {par.model} ({crit}{', robust' if robust is not None else ''})"
     t0 = time.perf_counter()
-    with _Progress(progress, evals, label) as prog:
-        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, prog, robust,
+    with progress_bar(evals, label, enabled=progress) as bar:
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, bar, robust, label,
                              search_quadrature, selfcal)
         if start_bench is not None and isinstance(par, CoDesignParameterisation):
             u0, start_kind = _start_point(prob, par.from_lens(start_lens or par.template, start_bench)

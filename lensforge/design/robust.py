@@ -39,7 +39,7 @@ from ..optics.sensitivity import Metrics, metrics_from_S, sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 
 __all__ = ["RobustSpec", "RobustValue", "STATISTICS", "FAIL_VALUE", "as_built_draws", "robust_value",
-           "expected_criterion", "compare_designs", "compare_robust", "format_robust_table"]
+           "compare_robust", "format_robust_table"]
 
 STATISTICS = ("mean", "max", "mean+std")
 FAIL_VALUE = 1e9  # criterion value of an unmeasurable / non-physical as-built draw (and the cap of every draw)
@@ -209,20 +209,6 @@ def robust_value(bench: Bench, lens: Lens, spec: RobustSpec, criterion: str = "A
     failed = sum(m is None for m in ms)
     rv = RobustValue(float(vals.mean()), vals, float(nominal), int(failed), spec.aggregate(vals), spec.statistic)
     return (rv, ms) if return_metrics else rv
-
-
-def expected_criterion(lens: Lens, tolerances, bench: Bench | None = None, criterion: str = "D",
-                       n_samples: int = 8, seed: int = 0, weights=(1.0, 1.0), statistic: str = "mean") -> RobustValue:
-    """Mean (or ``statistic``) of ``criterion`` over ``n_samples`` as-built draws of ``lens`` (CRN seeds)."""
-    spec = RobustSpec(tolerances, n_samples, seed, statistic)
-    return robust_value(bench or Bench.default(), lens, spec, criterion, weights)
-
-
-def compare_designs(designs: dict, tolerances, bench: Bench | None = None, criterion: str = "D",
-                    n_samples: int = 16, seed: int = 0) -> dict:
-    """{name: RobustValue.to_dict()} for several lenses under the same tolerances and seeds."""
-    return {name: expected_criterion(_lens_of(lens), tolerances, bench, criterion, n_samples, seed).to_dict()
-            for name, lens in designs.items()}
 
 
 # --- comparison on fresh draws ---------------------------------------------------

@@ -50,16 +50,31 @@ def with_flange(lens: Lens, flange_mm: float = DEFAULT_FLANGE_MM) -> Lens:
 
 @dataclass(frozen=True)
 class FeatureSpec:
-    """Optional handling features (lengths in mm, angles in rad about +z of {O}).
+    """Optional handling features (lengths in mm, angles in rad about +z of {O}). The default
+    sizes are ASSUMPTIONS (a 6 mm wide tab suits a small parallel gripper; 0.5 mm flat/notch
+    depth is several Form 2 laser spots, so it prints and is visible).
 
-    fiducial: None, "flat" or "notch" (a flat or a rectangular slot on the edge that
-    makes the roll of the lens visible); fiducial_angle: direction of its centre;
-    fiducial_depth_mm: how far it reaches in from the edge; notch_width_mm: slot width.
-    tab: add a rectangular gripper tab at tab_angle reaching tab_length_mm beyond the
-    edge, tab_width_mm wide and tab_thickness_mm thick along z (clipped to 80 % of the
-    local edge thickness). clearance_mm: minimum gap kept to the clear aperture.
-    The default sizes are ASSUMPTIONS (a 6 mm wide tab suits a small parallel gripper;
-    0.5 mm flat/notch depth is several Form 2 laser spots, so it prints and is visible).
+    Parameters
+    ----------
+    fiducial : str or None
+        None, "flat" or "notch": a flat or a rectangular slot on the edge that makes the
+        roll of the lens visible.
+    fiducial_angle : float
+        Direction of the fiducial's centre, rad.
+    fiducial_depth_mm : float
+        How far it reaches in from the edge, mm.
+    notch_width_mm : float
+        Slot width, mm.
+    tab : bool
+        Add a rectangular gripper tab.
+    tab_angle : float
+        Its direction, rad.
+    tab_width_mm, tab_length_mm : float
+        Its width and its reach beyond the edge, mm.
+    tab_thickness_mm : float
+        Its thickness along z, mm (clipped to 80 % of the local edge thickness).
+    clearance_mm : float
+        Minimum gap kept to the clear aperture, mm.
     """
 
     fiducial: str | None = None

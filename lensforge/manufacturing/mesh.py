@@ -20,14 +20,19 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import manifold3d as m3
 import numpy as np
-import trimesh
 
-from ..errors import ConfigError, LensforgeError
+from ..errors import ConfigError, ExceptionWrapper, LensforgeError, MissingDependencyError
 from ..fileio import write_atomic
 from ..optics.lens import Lens
 from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
+
+MESH_STACK_MISSING = "STL/3MF export needs trimesh and manifold3d: pip install 'lensforge[export]'"
+try:  # the `export` extra: calibrating a robot does not need the mesh stack installed
+    import manifold3d as m3
+    import trimesh
+except ImportError as _exc:
+    m3 = trimesh = ExceptionWrapper(MissingDependencyError(MESH_STACK_MISSING), _exc)
 
 __all__ = [
     "disc_triangulation",
@@ -390,10 +395,34 @@ def export_stl(lens: Lens, path: str | PathLike[str], chord_tol_mm: float = 1e-3
                features: FeatureSpec | None = None, n_rings: int | None = None) -> StlExport:
     """Write the lens as a binary STL (atomically) after validating the mesh.
 
-    chord_tol_mm: largest allowed deviation of the triangles from the analytic part (mm);
-    fiducial: False, True (= 'flat'), 'flat' or 'notch'; tab: add a gripper tab;
-    features: a full FeatureSpec (overrides fiducial/tab); n_rings: force the ring count.
-    Raises LensforgeError if the mesh is not watertight, manifold and of genus 0.
+    Parameters
+    ----------
+    lens : Lens
+        The lens ({O}, mm).
+    path : str or os.PathLike
+        Destination file.
+    chord_tol_mm : float
+        Largest allowed deviation of the triangles from the analytic part, mm.
+    fiducial : bool or str
+        False, True (= 'flat'), 'flat' or 'notch'.
+    tab : bool
+        Add a gripper tab.
+    features : FeatureSpec, optional
+        A full feature spec (overrides fiducial and tab).
+    n_rings : int, optional
+        Force the ring count of the triangulation.
+
+    Returns
+    -------
+    StlExport
+        Path, triangle count, chord errors (mm), volumes (mm^3), watertight/manifold checks.
+
+    Raises
+    ------
+    LensforgeError
+        The mesh is not watertight, manifold and of genus 0.
+    MissingDependencyError
+        trimesh/manifold3d are not installed (``pip install 'lensforge[export]'``).
     """
     t0 = time.perf_counter()
     spec = features if features is not None else features_from_args(fiducial, tab)

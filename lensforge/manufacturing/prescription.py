@@ -39,7 +39,7 @@ from ..optics.lens import Lens, lens_conventions
 from ..optics.surfaces import (Conic, ExtendedPolynomial, Freeform, Surface, ZernikeSag,
                                extended_monomial_exponents)
 
-__all__ = ["lens_conventions", "optiland_model", "write_optiland", "opticstudio_prescription",
+__all__ = ["optiland_model", "write_optiland", "opticstudio_prescription",
            "format_prescription", "write_prescription", "OPTILAND_NEWTON_TOL_MM"]
 
 OPTILAND_NEWTON_TOL_MM = 1e-12  # optiland's Newton-Raphson intersection tolerance in the written file
@@ -117,10 +117,23 @@ def _surface(geometry: dict, thickness: float, index: float, comment: str, is_st
 
 
 def optiland_model(lens: Lens, bench: Bench, gap_mm: float = 5.0) -> dict:
-    """The bench as an optiland ``Optic`` dict: beam plane (stop, EPD = beam diameter),
-    lens front and back at the nominal placement, sensor (image) plane.
+    """The bench as an optiland ``Optic`` dict: beam plane (stop, EPD = beam diameter), lens
+    front and back at the nominal placement, sensor (image) plane.
 
-    gap_mm: distance from the beam plane to the front vertex (mm).
+    Parameters
+    ----------
+    lens : Lens
+        The lens.
+    bench : Bench
+        The bench (an on-axis collimated beam).
+    gap_mm : float
+        Distance from the beam plane to the front vertex, mm.
+
+    Returns
+    -------
+    dict
+        optiland's JSON layout (``optiland.fileio.load_optiland_file`` opens it), with a
+        ``lensforge`` block of frames and conventions.
     """
     lens.validate()
     if any(bench.laser.slope):
@@ -173,8 +186,25 @@ def optiland_model(lens: Lens, bench: Bench, gap_mm: float = 5.0) -> dict:
 
 
 def write_optiland(lens: Lens, bench: Bench, path: str | PathLike[str], gap_mm: float = 5.0) -> Path:
-    """Write ``optiland_model`` as optiland JSON (atomically; planes carry ``Infinity``
-    radii as optiland itself writes them)."""
+    """Write :func:`optiland_model` as optiland JSON (atomically; planes carry ``Infinity``
+    radii as optiland itself writes them).
+
+    Parameters
+    ----------
+    lens : Lens
+        The lens.
+    bench : Bench
+        The bench.
+    path : str or os.PathLike
+        Destination file.
+    gap_mm : float
+        Distance from the beam plane to the front vertex, mm.
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
     text = json.dumps(optiland_model(lens, bench, gap_mm), indent=2, default=json_default)
     return write_atomic(path, text + "\n")
 
@@ -228,6 +258,20 @@ def opticstudio_prescription(lens: Lens, bench: Bench) -> dict:
     lens front, lens back, IMA (lenslet plane). Zernike surfaces are "Zernike Standard
     Sag" (Noll order, as OpticStudio's Zernike Standard coefficients); other freeforms
     "Extended Polynomial" with terms x, y, x^2, xy, y^2, ...
+
+    Parameters
+    ----------
+    lens : Lens
+        The lens.
+    bench : Bench
+        The bench.
+
+    Returns
+    -------
+    dict
+        ``lens`` (name), ``system`` (aperture, lens units, wavelength in um, field), ``surfaces``
+        (one row per surface: type, radius, thickness, material, semi-diameter, parameters; mm)
+        and ``conventions`` (:func:`lensforge.lens_conventions`).
     """
     lens.validate()
     wl_nm = bench.laser.wavelength_nm
@@ -281,5 +325,21 @@ def format_prescription(p: dict) -> str:
 
 
 def write_prescription(lens: Lens, bench: Bench, path: str | PathLike[str]) -> Path:
-    """Write the OpticStudio prescription table as text (atomically)."""
+    """Write the OpticStudio prescription table (:func:`opticstudio_prescription`) as text
+    (atomically).
+
+    Parameters
+    ----------
+    lens : Lens
+        The lens.
+    bench : Bench
+        The bench.
+    path : str or os.PathLike
+        Destination file.
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
     return write_atomic(path, format_prescription(opticstudio_prescription(lens, bench)))

@@ -9,6 +9,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import LensforgeError
 from ..fileio import dumps_json, write_atomic
@@ -18,7 +19,9 @@ from .features import DEFAULT_FLANGE_MM, FeatureSpec, with_flange
 from .mesh import StlExport, build_lens_mesh, check_mesh, orient_mesh, save_3mf, save_stl
 from .printer import FORM2, PrinterProfile, PrintReport, check_layer, printability
 from .slicer import SlicerCheck, slicer_check
-from .step import StepExport, export_step
+
+if TYPE_CHECKING:
+    from .step import StepExport
 
 __all__ = ["ExportReport", "export_lens", "export_steps", "REPORT_SCHEMA_VERSION"]
 
@@ -27,7 +30,35 @@ REPORT_SCHEMA_VERSION = 1
 
 @dataclass(frozen=True)
 class ExportReport:
-    """Everything ``lensforge export`` wrote and checked."""
+    """Everything ``lensforge export`` wrote and checked (``to_dict()`` is the JSON report).
+
+    Parameters
+    ----------
+    lens_name : str
+        The lens's name.
+    stl : StlExport or None
+        The STL written, if any.
+    step : StepExport or None
+        The STEP written, if any.
+    print_report : PrintReport
+        Printer fit, orientation and staircase for the Form 2.
+    slicer : SlicerCheck or None
+        PrusaSlicer's verdict, if run.
+    mesh_check : dict
+        Watertight/manifold/volume of the mesh (also when no STL was written).
+    report_path : pathlib.Path or None
+        The report JSON written, if any.
+    wall_s : float
+        Wall time, s.
+    threemf_path : pathlib.Path or None
+        The 3MF written, if any.
+    edge_diameter_mm : float or None
+        Mechanical edge diameter of the exported lens, mm.
+    oriented : tuple or None
+        4x4 {O} -> print coordinates applied to the STL/3MF, or None.
+    extra_files : tuple
+        (kind, path) of the optiland model, prescription, ...
+    """
 
     lens_name: str
     stl: StlExport | None
@@ -174,15 +205,57 @@ def export_lens(lens: Lens, out_dir: str | PathLike[str], stem: str, stl: bool =
                 progress: Callable[[str], None] | None = None) -> ExportReport:
     """Write OUT_DIR/STEM.stl and/or .step (and .3mf) and STEM.report.json; check printability.
 
-    flange_mm: mechanical edge beyond the clear aperture (mm; None or 0: keep the lens's
-    edge diameter); orient: turn the STL/3MF into the suggested print orientation (build
-    direction +z, resting on z = 0; the STEP stays in {O}); optiland: also write
-    STEM.optiland.json (bench model for optiland) and STEM.opticstudio.txt (prescription)
-    for ``bench`` (default bench if None); progress: called with each step's name
-    (:func:`export_steps`) when it starts. The slicer runs on the written STL (verdict
-    "not available" without PrusaSlicer).
+    The slicer runs on the written STL (verdict "not available" without PrusaSlicer).
+
+    Parameters
+    ----------
+    lens : Lens
+        The lens ({O}, mm).
+    out_dir : str or os.PathLike
+        Output folder.
+    stem : str
+        File stem (a plain name).
+    stl, step, threemf : bool
+        Which files to write.
+    features : FeatureSpec, optional
+        Handling features.
+    layer_mm : float
+        Layer height, mm (Form 2: 0.025, 0.05, 0.1).
+    chord_tol_mm : float
+        Largest mesh deviation from the surfaces, mm.
+    run_slicer : bool
+        Check the STL with PrusaSlicer when installed.
+    profile : PrinterProfile
+        The printer (default the Form 2).
+    write_report : bool
+        Write STEM.report.json.
+    flange_mm : float or None
+        Mechanical edge beyond the clear aperture, mm (None or 0: keep the lens's edge diameter).
+    orient : bool
+        Turn the STL/3MF into the suggested print orientation (build direction +z, resting
+        on z = 0; the STEP stays in {O}).
+    optiland : bool
+        Also write STEM.optiland.json and STEM.opticstudio.txt for ``bench``.
+    bench : Bench, optional
+        The bench of the optiland model (default bench if None).
+    progress : callable, optional
+        Called with each step's name (:func:`export_steps`) when it starts.
+
+    Returns
+    -------
+    ExportReport
+        What was written and checked.
+
+    Raises
+    ------
+    MissingDependencyError
+        STEP asked for without the CAD stack, or no mesh stack (``pip install 'lensforge[export]'``).
+    LensforgeError
+        A bad stem or layer, or a mesh/solid that fails its checks.
     """
     t0 = time.perf_counter()
+    if step:  # the CAD stack is the `export` extra: say so before any work (MissingDependencyError)
+        from .step import export_step
     tick = progress or (lambda _name: None)
     layer = check_layer(layer_mm, profile)
     if not stem or "/" in stem or stem.startswith("."):

@@ -23,34 +23,42 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
-from OCP.BRep import BRep_Tool
-from OCP.BRepAlgoAPI import BRepAlgoAPI_Cut, BRepAlgoAPI_Fuse, BRepAlgoAPI_Splitter
-from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Transform
-from OCP.BRepCheck import BRepCheck_Analyzer
-from OCP.BRepClass3d import BRepClass3d_SolidClassifier
-from OCP.BRepGProp import BRepGProp
-from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox, BRepPrimAPI_MakeCylinder
-from OCP.GeomAPI import GeomAPI_PointsToBSplineSurface
-from OCP.GProp import GProp_GProps
-from OCP.gp import gp_Ax1, gp_Ax2, gp_Dir, gp_Pnt, gp_Trsf
-from OCP.IFSelect import IFSelect_RetDone
-from OCP.Interface import Interface_Static
-from OCP.Message import Message, Message_Gravity
-from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
-from OCP.STEPControl import STEPControl_AsIs, STEPControl_Reader, STEPControl_Writer
-from OCP.TCollection import TCollection_HAsciiString
-from OCP.TColStd import TColStd_Array2OfReal
-from OCP.TopAbs import TopAbs_IN, TopAbs_SHELL, TopAbs_SOLID
-from OCP.TopExp import TopExp_Explorer
-from OCP.TopoDS import TopoDS, TopoDS_Shape
-from OCP.TopTools import TopTools_ListOfShape
 
-from ..errors import ConfigError, LensforgeError
+from ..errors import ConfigError, LensforgeError, MissingDependencyError
 from ..fileio import write_atomic
 from ..optics.lens import Lens
 from .features import Box, FeatureSpec, feature_boxes, feature_volume_change, lens_volume
 from .mesh import features_from_args
+
+# Every line below needs OCP, so a missing CAD stack fails the import itself, with one line naming the
+# extra (the importers, report.export_lens and the package's lazy ``export_step``, import it only for a
+# STEP). mesh.py instead binds an ExceptionWrapper: it also holds numpy-only helpers others import.
+CAD_STACK_MISSING = "STEP export needs the CAD stack: pip install 'lensforge[export]'"
+try:  # the `export` extra (cadquery's OCP, with vtk): only STEP export imports this module
+    from OCP.APIHeaderSection import APIHeaderSection_MakeHeader
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepAlgoAPI import BRepAlgoAPI_Cut, BRepAlgoAPI_Fuse, BRepAlgoAPI_Splitter
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace, BRepBuilderAPI_Transform
+    from OCP.BRepCheck import BRepCheck_Analyzer
+    from OCP.BRepClass3d import BRepClass3d_SolidClassifier
+    from OCP.BRepGProp import BRepGProp
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox, BRepPrimAPI_MakeCylinder
+    from OCP.GeomAPI import GeomAPI_PointsToBSplineSurface
+    from OCP.GProp import GProp_GProps
+    from OCP.gp import gp_Ax1, gp_Ax2, gp_Dir, gp_Pnt, gp_Trsf
+    from OCP.IFSelect import IFSelect_RetDone
+    from OCP.Interface import Interface_Static
+    from OCP.Message import Message, Message_Gravity
+    from OCP.ShapeUpgrade import ShapeUpgrade_UnifySameDomain
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Reader, STEPControl_Writer
+    from OCP.TCollection import TCollection_HAsciiString
+    from OCP.TColStd import TColStd_Array2OfReal
+    from OCP.TopAbs import TopAbs_IN, TopAbs_SHELL, TopAbs_SOLID
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS, TopoDS_Shape
+    from OCP.TopTools import TopTools_ListOfShape
+except ImportError as _exc:
+    raise MissingDependencyError(CAD_STACK_MISSING) from _exc
 
 __all__ = ["SagPatch", "StepSolid", "StepExport", "sag_patch", "build_step_solid", "solid_report", "read_step",
            "export_step"]
@@ -313,6 +321,11 @@ def _step_bytes(shape: TopoDS_Shape, name: str = "lens", file_name: str = "lens.
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "lens.step"
             if w.Write(str(p)) != IFSelect_RetDone:
+                import shutil
+
+                if shutil.disk_usage(tmp).free < 64 * 2**20:  # OCC says only "failed": name the likely cause
+                    raise LensforgeError(f"step: the temporary folder {tempfile.gettempdir()} (TMPDIR) is full; free "
+                                         "space there or set TMPDIR to a folder with room")
                 raise LensforgeError("step: OCC could not write the STEP file")
             return p.read_bytes()
 
@@ -354,10 +367,33 @@ def export_step(lens: Lens, path: str | PathLike[str], fiducial: bool | str = Fa
                 grid: int | None = None) -> StepExport:
     """Write the lens as an AP214 STEP solid (atomically) and verify it by reading it back.
 
-    deviation_goal_mm: largest allowed B-spline deviation from the analytic sag (mm,
-    default 10 nm); grid: force the interpolation grid (nodes per side).
-    Raises LensforgeError if the solid is not valid and closed; the result reports the
-    measured deviation and the re-import volume error (goal |error| <= 1e-6).
+    Parameters
+    ----------
+    lens : Lens
+        The lens ({O}, mm).
+    path : str or os.PathLike
+        Destination file.
+    fiducial : bool or str
+        False, True (= 'flat'), 'flat' or 'notch'.
+    tab : bool
+        Add a gripper tab.
+    features : FeatureSpec, optional
+        A full feature spec (overrides fiducial and tab).
+    deviation_goal_mm : float
+        Largest allowed B-spline deviation from the analytic sag, mm (default 10 nm).
+    grid : int, optional
+        Force the interpolation grid (nodes per side).
+
+    Returns
+    -------
+    StepExport
+        Path, measured deviation (mm), grid, validity, volumes (mm^3) and the re-import
+        volume error (goal |error| <= 1e-6).
+
+    Raises
+    ------
+    LensforgeError
+        The solid is not valid and closed.
     """
     t0 = time.perf_counter()
     spec = features if features is not None else features_from_args(fiducial, tab)

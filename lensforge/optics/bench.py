@@ -22,8 +22,7 @@ from ..errors import ConfigError
 from ..fileio import read_toml, write_atomic
 from ..input_checks import BENCH_RANGES, MAX_LENSLETS, Num, check_header, check_ranges, number
 
-__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench",
-           "write_atomic"]
+__all__ = ["Laser", "Sensor", "Placement", "Noise", "PoseLimits", "Bench", "SPOT_ASSIGNMENTS", "load_bench", "save_bench"]
 
 
 @dataclass(frozen=True)
@@ -139,13 +138,28 @@ class PoseLimits:
 
 @dataclass(frozen=True)
 class Bench:
-    """Everything the forward model needs besides the lens.
+    """Everything the forward model needs besides the lens (frozen; TOML via load_bench/save_bench).
 
-    fd_steps: steps per DOF (mm, mm, mm, rad, rad, rad) of the central differences
-    that check the exact S (``sensitivity.difference_jacobian``);
-    pose_scales: expected pose uncertainty per DOF used to scale S for metrics
-    (1 mm and 1 deg by default, DESIGN.md); rank_rtol: singular values below
-    rank_rtol * sigma_max of the scaled, whitened S count as lost rank.
+    Parameters
+    ----------
+    laser : Laser
+        Wavelength (nm), beam diameter (mm), beam offset (mm) and slope in {S}.
+    placement : Placement
+        Nominal lens placement: {O} at z = -distance_mm in {S}, axes parallel.
+    sensor : Sensor
+        Shack-Hartmann sensor: pitch, aperture, pupil, Zernike order, centroid model.
+    noise : Noise
+        Measurement noise (slope 1-sigma per lenslet and axis, urad).
+    pose_limits : PoseLimits
+        Valid pose range about nominal (mm, rad).
+    fd_steps : tuple of float, shape (6,)
+        Steps per DOF (mm, mm, mm, rad, rad, rad) of the central differences that check
+        the exact S in the tests (tests/test_observability.py).
+    pose_scales : tuple of float, shape (6,)
+        Expected pose uncertainty per DOF (mm, rad) that scales S for the metrics
+        (1 mm and 1 deg by default, DESIGN.md).
+    rank_rtol : float
+        Singular values below rank_rtol * sigma_max of the scaled, whitened S count as lost rank.
     """
 
     laser: Laser = field(default_factory=Laser)
@@ -297,7 +311,23 @@ def _from_dict(cls, d, where):
 
 
 def load_bench(path: str | PathLike[str]) -> Bench:
-    """Read a bench TOML file; missing keys take the defaults."""
+    """Read a bench TOML file (``kind = "lensforge.bench"``); missing keys take the defaults.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The TOML file.
+
+    Returns
+    -------
+    Bench
+        The validated bench.
+
+    Raises
+    ------
+    ConfigError
+        A bad header, key, type or value (the message names the file and field).
+    """
     d = read_toml(path, "bench file")
     check_header(d, f"bench file {Path(path).name}", kind="lensforge.bench")
     d.pop("schema_version", None)
@@ -306,5 +336,18 @@ def load_bench(path: str | PathLike[str]) -> Bench:
 
 
 def save_bench(bench: Bench, path: str | PathLike[str]) -> Path:
-    """Write the bench as TOML (atomically)."""
+    """Write the bench as TOML (atomically: the file is complete or absent).
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench to write.
+    path : str or os.PathLike
+        Destination file.
+
+    Returns
+    -------
+    pathlib.Path
+        The written file.
+    """
     return write_atomic(path, tomli_w.dumps(bench.to_dict()))

@@ -38,13 +38,25 @@ def polar_grid(radius: float, n_r: int = 48, n_phi: int = 96):
 
 @dataclass(frozen=True)
 class Lens:
-    """A singlet lens.
+    """A singlet lens in its frame {O}: front vertex at z = -l/2, back vertex at z = +l/2.
 
-    front, back: surfaces (sag along +z of their vertex frames); thickness: centre
-    thickness l (mm); aperture: clear-aperture diameter (mm); material: name of a
-    file in ``materials/`` (or a Material); index_offset: added to the material
-    index (as-built lenses); edge_diameter: mechanical diameter of the cylindrical
-    edge (mm, default = aperture); name: free text.
+    Parameters
+    ----------
+    front, back : Surface
+        The two surfaces (sag along +z of their vertex frames): Conic, Polynomial,
+        ExtendedPolynomial, ZernikeSag or Freeform.
+    thickness : float
+        Centre thickness l, mm.
+    aperture : float
+        Clear-aperture diameter, mm.
+    material : str or Material
+        Name of a file in ``materials/`` (or a Material).
+    index_offset : float
+        Added to the material's index (as-built lenses).
+    edge_diameter : float or None
+        Mechanical diameter of the cylindrical edge, mm (None: the aperture).
+    name : str
+        Free text.
     """
 
     front: Surface
@@ -167,7 +179,24 @@ class Lens:
 
 
 def lens_conventions(lens: Lens, wavelength_nm: float) -> dict:
-    """What another tool needs to read this lens's numbers (JSON-ready)."""
+    """What another tool needs to read this lens's numbers: units, Zernike order and
+    normalisation, the index at the design wavelength (JSON-ready).
+
+    Parameters
+    ----------
+    lens : Lens
+        The lens.
+    wavelength_nm : float
+        Design wavelength, nm.
+
+    Returns
+    -------
+    dict
+        Keys ``length_unit``, ``sag_coefficient_units``, ``zernike_order``,
+        ``zernike_first_index``, ``zernike_normalisation``, ``zernike_sign``,
+        ``wavefront_zernike_units``, ``design_wavelength_nm``,
+        ``index_at_design_wavelength``, ``material``, ``index_offset``.
+    """
     return {
         "length_unit": "mm",
         "sag_coefficient_units": "mm (Zernike and extended-polynomial coefficients multiply "
@@ -243,7 +272,24 @@ PAPER_LENSES = {
 
 
 def paper_lens(name: str) -> Lens:
-    """One of the paper's lenses: 'spherical', 'polynomial', 'extended_polynomial', 'zernike'."""
+    """One of the paper's four lenses (Optics Express 30(9) 14368, 2022; assumptions marked in
+    ``lensforge.optics.lens``).
+
+    Parameters
+    ----------
+    name : str
+        'spherical', 'polynomial', 'extended_polynomial' or 'zernike' ('-' for '_' accepted).
+
+    Returns
+    -------
+    Lens
+        The validated lens (mm).
+
+    Raises
+    ------
+    ConfigError
+        An unknown name.
+    """
     key = str(name).lower().replace("-", "_")
     if key not in PAPER_LENSES:
         raise ConfigError(f"lens name: unknown paper lens {name!r}; use one of {sorted(PAPER_LENSES)}")
@@ -279,11 +325,27 @@ LensSpec: TypeAlias = "str | PathLike[str] | Lens | ResolvedLens | HasLens"
 
 
 def resolve_lens(spec: LensSpec) -> ResolvedLens:
-    """The one lens resolver of every command and study: a paper lens name
-    (spherical, polynomial, extended_polynomial, zernike; '-' for '_' accepted),
-    'paper:NAME', a design JSON file (lens under key "lens", bench under "bench"), a
-    lens JSON file (``Lens.to_dict()``), a Lens, or an object with ``.lens`` (and
-    optionally ``.bench``, e.g. a Design). Raises ConfigError naming the fix."""
+    """The one lens resolver of every command and study.
+
+    Parameters
+    ----------
+    spec : LensSpec
+        A paper lens name (spherical, polynomial, extended_polynomial, zernike; '-' for '_'
+        accepted), 'paper:NAME', a design JSON file (lens under key "lens", bench under
+        "bench"), a lens JSON file (``Lens.to_dict()``), a Lens, a ResolvedLens, or an
+        object with ``.lens`` (and optionally ``.bench``, e.g. a Design).
+
+    Returns
+    -------
+    ResolvedLens
+        ``lens`` (validated), ``label`` (for tables), ``bench`` (the design's bench when the
+        source stores one, else None), ``data`` (the parsed JSON, {} otherwise), ``source``.
+
+    Raises
+    ------
+    ConfigError
+        A spec that names no lens, or a bad file (the message names the fix).
+    """
     if isinstance(spec, ResolvedLens):
         return spec
     if isinstance(spec, Lens):
@@ -327,7 +389,20 @@ def resolve_lens(spec: LensSpec) -> ResolvedLens:
 
 
 def load_lens(source: "str | PathLike[str]") -> tuple[Lens, dict]:
-    """(validated lens, parsed JSON or {}) of ``resolve_lens(source)``."""
+    """The lens and parsed JSON of ``resolve_lens(source)``.
+
+    Parameters
+    ----------
+    source : str or os.PathLike
+        Anything :func:`resolve_lens` accepts.
+
+    Returns
+    -------
+    lens : Lens
+        The validated lens.
+    data : dict
+        The parsed JSON file, or {} when the source was not a file.
+    """
     r = resolve_lens(source)
     return r.lens, r.data
 

@@ -97,7 +97,25 @@ def list_materials() -> list[str]:
 
 
 def load_material(name: str) -> Material:
-    """Material by name (file ``materials/NAME.toml``, case-insensitive) or a TOML path."""
+    """A refractive material by name or file.
+
+    Parameters
+    ----------
+    name : str or Material
+        A file stem in ``materials/`` (case-insensitive), a path to a material TOML file, or
+        a Material (returned as is).
+
+    Returns
+    -------
+    Material
+        Dispersion model (index at a wavelength via ``Material.index(wavelength_nm)``),
+        index uncertainties and cure shrinkage, with their sources.
+
+    Raises
+    ------
+    ConfigError
+        An unknown material (the message lists the available ones).
+    """
     if isinstance(name, Material):
         return name
     p = Path(name)

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = ["pose_to_matrix", "matrix_to_pose", "rotations", "rotvecs", "skew", "invert_poses", "adjoint",
-           "right_jacobian_so3", "pose_vector_cov_to_right", "rotation_angle_deg", "transform_error",
+           "right_jacobian_so3", "right_jacobian_inv_so3", "pose_vector_cov_to_right", "rotation_angle_deg", "transform_error",
            "DOF_NAMES", "DOF_UNITS"]
 
 DOF_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -92,7 +92,19 @@ def rotvecs(R) -> np.ndarray:
 
 
 def pose_to_matrix(x: ArrayLike) -> np.ndarray:
-    """4x4 transform(s) [R(r), t; 0, 1] of pose vector(s) (..., 6)."""
+    """Homogeneous transform(s) [R(r), t; 0, 1] of pose vector(s).
+
+    Parameters
+    ----------
+    x : array_like, shape (..., 6)
+        Pose vectors (tx, ty, tz, rx, ry, rz): translation in mm and a rotation vector
+        (axis times angle) in rad.
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 4, 4)
+        The transforms, R = exp([r]x).
+    """
     x = np.asarray(x, dtype=float)
     T = np.zeros(x.shape[:-1] + (4, 4))
     T[..., :3, :3] = rotations(x[..., 3:])
@@ -102,13 +114,36 @@ def pose_to_matrix(x: ArrayLike) -> np.ndarray:
 
 
 def matrix_to_pose(T: ArrayLike) -> np.ndarray:
-    """Pose vector(s) (..., 6) of 4x4 transform(s)."""
+    """Pose vector(s) of homogeneous transform(s).
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Rigid transforms (orthonormal rotation block).
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 6)
+        (tx, ty, tz, rx, ry, rz): translation in the transforms' unit (mm in lensforge) and
+        the rotation vector in rad (angle in [0, pi]).
+    """
     T = np.asarray(T, dtype=float)
     return np.concatenate([T[..., :3, 3], rotvecs(T[..., :3, :3])], axis=-1)
 
 
 def invert_poses(T: ArrayLike) -> np.ndarray:
-    """Inverse(s) of rigid transform(s) (..., 4, 4), exact for orthonormal R."""
+    """Inverse(s) of rigid transform(s), exact for an orthonormal rotation block.
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Rigid transforms [R, t; 0, 1].
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 4, 4)
+        [R^T, -R^T t; 0, 1].
+    """
     T = np.asarray(T, dtype=float)
     R = T[..., :3, :3]
     t = T[..., :3, 3]
@@ -145,6 +180,19 @@ def right_jacobian_so3(r) -> np.ndarray:
     return np.eye(3) - a * K + b * K @ K
 
 
+def right_jacobian_inv_so3(r, left: bool = False) -> np.ndarray:
+    """Inverse right Jacobian J_r(r)^-1 (..., 3, 3) of SO(3) for rotation vectors r (..., 3)
+    (left=True: the inverse left Jacobian, J_l(r)^-1 = J_r(-r)^-1). Below 1e-4 rad the
+    coefficient's series 1/12 + th^2/720 replaces the closed form (which cancels there)."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r, axis=-1)[..., None, None]
+    K = skew(-r if left else r)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
+    return np.eye(3) + 0.5 * K + c * (K @ K)
+
+
 def pose_vector_cov_to_right(x, cov_x) -> np.ndarray:
     """Covariance of a pose vector x = (t, r) (as returned by the pose estimator, where
     T = T_nominal P(x)) converted to the right perturbation of T used by hand-eye (T P(xi)).
@@ -166,6 +214,19 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 
 def transform_error(T_true: np.ndarray, T_est: np.ndarray) -> tuple[float, float]:
-    """(rotation deg, translation mm) of T_true^-1 T_est."""
+    """Rotation and translation error of an estimated transform against the true one.
+
+    Parameters
+    ----------
+    T_true, T_est : numpy.ndarray, shape (4, 4)
+        True and estimated rigid transforms (translations in mm).
+
+    Returns
+    -------
+    rotation_deg : float
+        Rotation angle of T_true^-1 T_est, degrees.
+    translation_mm : float
+        Distance between the two translations |t_est - t_true|, mm.
+    """
     E = np.linalg.solve(T_true, T_est)
     return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))

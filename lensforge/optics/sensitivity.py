@@ -34,7 +34,7 @@ from .lens import Lens
 from .pose import DOF_NAMES
 from .shack_hartmann import ForwardModel, ZernikeResult
 
-__all__ = ["jacobian", "JACOBIAN_EVALS", "difference_jacobian", "observability", "Observability", "sensitivity", "sensitivity_from_model", "Metrics",
+__all__ = ["jacobian", "JACOBIAN_EVALS", "observability", "Observability", "sensitivity", "sensitivity_from_model", "Metrics",
            "metrics", "metrics_from_S", "paper_cost", "RANK_PENALTY"]
 
 RANK_PENALTY = 1e6  # added to J per lost rank
@@ -50,33 +50,34 @@ NULL_ENTRY_TOL_NOISY = 1e-2
 
 def jacobian(model: ForwardModel, x: ArrayLike, *, uv: ArrayLike | None = None,
              check_range: bool = False) -> tuple[np.ndarray, np.ndarray, ZernikeResult]:
-    """Exact Jacobians dz/dx (P, m, 6) at poses x (P, 6), in one batched trace.
+    """Exact Jacobians dz/dx at P poses, in one batched trace.
 
-    uv: (P, ...) aimed rays at x (warm start; default: aimed here). Units: um per mm
-    (tx, ty, tz), um per rad (rx, ry, rz). Returns (J, complete, result): complete (P,)
-    the pose is measurable (lit, traced, in the sensor's range); result: the
-    ZernikeResult at x. Agrees with ``difference_jacobian`` to its error (1e-8 relative
-    at the default bench.fd_steps; tests/test_observability.py).
+    Agrees with central differences (the tests' check) to their error (1e-8 relative at
+    the default bench.fd_steps; tests/test_observability.py).
+
+    Parameters
+    ----------
+    model : ForwardModel
+        Bench and lens.
+    x : array_like, shape (P, 6) or (6,)
+        Poses (mm, rad) about nominal.
+    uv : array_like, shape (P, ...), optional
+        Aimed rays at x (``ZernikeResult.uv``) as a warm start; default: aimed here.
+    check_range : bool
+        Also require every lenslet's spot in the sensor's range for ``complete``.
+
+    Returns
+    -------
+    J : numpy.ndarray, shape (P, m, 6)
+        dz/dx in um per mm (tx, ty, tz) and um per rad (rx, ry, rz).
+    complete : numpy.ndarray of bool, shape (P,)
+        The pose is measurable (lit, traced, in the sensor's range).
+    result : ZernikeResult
+        The forward model at x (z, slopes, status, aimed rays).
     """
     x = np.atleast_2d(np.asarray(x, dtype=float))
     J, _, res = model.jacobians(x, uv0=uv, check_range=check_range)
     return J, res.valid, res
-
-
-def difference_jacobian(model: ForwardModel, x: ArrayLike, scale: float = 1.0) -> np.ndarray:
-    """Central differences of the model, dz/dx (P, m, 6) at poses x (P, 6), with steps
-    scale * bench.fd_steps: an independent check of ``jacobian`` (12 evaluated poses per
-    pose, rays warm-started from x)."""
-    x = np.atleast_2d(np.asarray(x, dtype=float))
-    base = model.evaluate(x, check_range=False)
-    h = scale * np.asarray(model.bench.fd_steps, dtype=float)
-    cols = []
-    for j in range(6):
-        e = np.eye(6)[j] * h[j]
-        zp = model.evaluate(x + e, uv0=base.uv, check_range=False).z
-        zm = model.evaluate(x - e, uv0=base.uv, check_range=False).z
-        cols.append((zp - zm) / (2 * h[j]))
-    return np.stack(cols, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -136,14 +137,34 @@ class Observability:
 
 def observability(Jw: ArrayLike, scales: ArrayLike, rtol: float, limit: float = 1.0, names: tuple[str, ...] = DOF_NAMES,
                   equilibrate: bool = False) -> Observability:
-    """DESIGN.md's observability rule on a whitened Jacobian Jw (rows, n).
+    """DESIGN.md's observability rule on a whitened Jacobian: a parameter is unobservable when
+    it is numerically null or its predicted 1-sigma exceeds its scale.
 
-    scales: (n,) the parameters' scales D (the 1-sigma beyond which a parameter counts
-    as not measured; lens poses: bench.pose_scales); rtol: relative singular-value
-    threshold of numerical rank, on S~ = Jw D, or with ``equilibrate`` on Jw with unit
-    column norms (a unit-free test of the geometry alone: noise scales all rows and
-    leaves it unchanged); limit: predicted 1-sigma, in units of D, above which a
-    parameter or direction is unobservable (1: the scale itself).
+    Parameters
+    ----------
+    Jw : array_like, shape (rows, n)
+        Jacobian whitened by the measurement noise (R^(-1/2) J).
+    scales : array_like, shape (n,)
+        The parameters' scales D (the 1-sigma beyond which a parameter counts as not
+        measured; lens poses: bench.pose_scales, mm and rad).
+    rtol : float
+        Relative singular-value threshold of numerical rank, on S~ = Jw D, or with
+        ``equilibrate`` on Jw with unit column norms.
+    limit : float
+        Predicted 1-sigma, in units of D, above which a parameter or direction is
+        unobservable (1: the scale itself).
+    names : tuple of str, shape (n,)
+        Parameter names (default: the pose DOF names).
+    equilibrate : bool
+        Rank test on the column-equilibrated Jw (a unit-free test of the geometry alone:
+        noise scales all rows and leaves it unchanged).
+
+    Returns
+    -------
+    Observability
+        ``observable`` (n,) bool, ``std`` (n,) predicted 1-sigma in the parameters' units,
+        ``cov`` (n, n), ``rank``, ``rank_tol``, ``singular_values``, ``null_space``,
+        ``weak_space`` and ``basis`` (scaled units), ``names``.
     """
     Jw = np.asarray(Jw, dtype=float)
     D = np.asarray(scales, dtype=float)
@@ -201,7 +222,22 @@ def sensitivity_from_model(model: ForwardModel, pose=None, raise_invalid: bool =
 
 
 def sensitivity(bench: Bench, lens: Lens, pose: ArrayLike | None = None) -> np.ndarray:
-    """Sensitivity matrix S = dz/dx (m x 6): um per mm (tx, ty, tz), um per rad (rx, ry, rz)."""
+    """Sensitivity matrix S = dz/dx of a lens on a bench (exact: rays carry their tangents).
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench.
+    lens : Lens
+        The lens.
+    pose : array_like, shape (6,), optional
+        Pose (mm, rad) about nominal; default nominal.
+
+    Returns
+    -------
+    numpy.ndarray, shape (m, 6)
+        um per mm (tx, ty, tz) and um per rad (rx, ry, rz); m Zernike modes (Noll 2..).
+    """
     return sensitivity_from_model(ForwardModel(bench, lens), pose)[0]
 
 
@@ -219,14 +255,40 @@ def paper_cost(sv: np.ndarray, rank: int, weights=(1.0, 1.0), n_dof: int = 6) ->
 
 @dataclass(frozen=True)
 class Metrics:
-    """Design metrics of a lens on a bench (see module docstring).
+    """Design metrics of a lens on a bench (see the module docstring for the scaling).
 
-    rank/rank_tol, kappa, sigma_min, sigma_max, singular_values: of S~ (dimensionless);
-    J: paper cost; crlb: (6, 6) pose covariance bound (mm, rad); crlb_std: (6,)
-    per-DOF std (mm, rad; inf for unobservable DOF); raw_*: of S in its own units
-    (um/mm, um/rad); S: (m, 6); R: (m, m) um^2; z0: Zernikes at the pose (um);
-    null_space: (6, 6 - rank) numerically null pose directions (scaled units);
-    observability: the statistical rule per DOF (``observability``).
+    Parameters
+    ----------
+    rank : int
+        Numerical rank of the scaled, whitened S~ = R^(-1/2) S D.
+    rank_tol : float
+        Absolute singular-value threshold of that rank.
+    kappa, sigma_min, sigma_max : float
+        Condition number and extreme singular values of S~ (dimensionless).
+    singular_values : numpy.ndarray, shape (6,)
+        Of S~, descending.
+    J : float
+        The paper's cost w1 kappa + w2 / sigma_min plus the rank-loss penalty.
+    crlb : numpy.ndarray, shape (6, 6)
+        Cramer-Rao bound (S^T R^-1 S)^-1 of the pose, mm and rad.
+    crlb_std : numpy.ndarray, shape (6,)
+        Its per-DOF 1-sigma, mm and rad (inf for an unobservable DOF).
+    raw_singular_values : numpy.ndarray, shape (6,)
+        Of S in its own units (um/mm, um/rad).
+    raw_kappa : float
+        Condition number of S in its own units.
+    S : numpy.ndarray, shape (m, 6)
+        The sensitivity matrix dz/dx, um/mm and um/rad.
+    R : numpy.ndarray, shape (m, m)
+        Zernike noise covariance, um^2.
+    z0 : numpy.ndarray, shape (m,)
+        Zernike coefficients at the pose, um.
+    null_space : numpy.ndarray, shape (6, 6 - rank)
+        Numerically null pose directions (scaled units).
+    weights : tuple of float
+        (w1, w2) of J.
+    observability : Observability or None
+        DESIGN.md's statistical rule per DOF (:func:`observability`).
     """
 
     rank: int
@@ -291,7 +353,24 @@ def metrics_from_S(S: np.ndarray, R: np.ndarray, bench: Bench, z0=None, weights=
 
 def metrics(bench: Bench, lens: Lens, pose: ArrayLike | None = None,
             weights: tuple[float, float] = (1.0, 1.0)) -> Metrics:
-    """Rank, kappa, sigma_min, J and the Cramer-Rao bound of a lens on a bench."""
+    """Rank, kappa, sigma_min, J and the Cramer-Rao bound of a lens on a bench.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench (its noise model gives R, its pose_scales D).
+    lens : Lens
+        The lens.
+    pose : array_like, shape (6,), optional
+        Pose (mm, rad) about nominal; default nominal.
+    weights : tuple of float
+        (w1, w2) of the paper's cost J = w1 kappa + w2 / sigma_min.
+
+    Returns
+    -------
+    Metrics
+        Metrics of the scaled S~ = R^(-1/2) S D, the CRLB (mm, rad) and observability.
+    """
     model = ForwardModel(bench, lens)
     S, z0, _ = sensitivity_from_model(model, pose)
     return metrics_from_S(S, model.noise_cov, bench, z0, weights)

@@ -213,7 +213,18 @@ class ForwardModel:
     """z = h(x, p) for one bench and lens: the posed lens -> SH Zernike coefficients.
 
     Holds the packed lens and the fixed pupil; stateless otherwise, so it can be
-    shared between threads and pickled to workers.
+    shared between threads and pickled to workers. ``evaluate(poses)`` gives a
+    ZernikeResult, ``zernike(poses, rng)`` the (noisy) vector, ``jacobians(poses)`` the
+    exact dz/dx.
+
+    Parameters
+    ----------
+    bench : Bench
+        Laser, placement, sensor, noise and pose limits.
+    lens : Lens
+        The lens (mm).
+    validate : bool
+        Check the lens first (LensGeometryError when it is not physical).
     """
 
     def __init__(self, bench: Bench, lens: Lens, validate: bool = True):
@@ -393,18 +404,57 @@ class ForwardModel:
         poses = np.asarray(poses, dtype=float)
         res = self.evaluate(poses)
         res.raise_if_invalid()
-        z = res.z
-        if rng is not None:
-            sigma = self.bench.noise.slope_sigma_urad * 1e-6
-            z = self.pupil.fit(res.slopes + rng.normal(0.0, sigma, res.slopes.shape))
+        z = res.z if rng is None else self.add_noise(res, rng)
         return z[0] if poses.ndim == 1 else z
+
+    def noisy_slopes(self, res: ZernikeResult, rng: np.random.Generator) -> np.ndarray:
+        """The lenslet slopes (P, n, 2) in rad the sensor measures for a noise-free result: its
+        slopes plus the bench's slope noise (``noise.slope_sigma_urad``, drawn for every lenslet
+        of every pose, lit or not, so that a pose's draw does not depend on the others'). The one
+        noisy measurement of every simulation."""
+        sigma = self.bench.noise.slope_sigma_urad * 1e-6
+        return res.slopes + rng.normal(0.0, sigma, res.slopes.shape)
+
+    def add_noise(self, res: ZernikeResult, rng: np.random.Generator) -> np.ndarray:
+        """The Zernike vectors (P, m) in um the sensor reports: ``noisy_slopes`` fitted over the pupil."""
+        return self.pupil.fit(self.noisy_slopes(res, rng))
+
+    def measure_noisy(self, poses: ArrayLike, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(z (P, m) um, lit (P,) bool, slopes (P, n, 2) rad): noisy Zernike vectors at poses
+        (P, 6), which poses the sensor can measure (pupil lit, in range) and the noisy lenslet
+        slopes they were fitted from (``noisy_slopes``); never raises on a dark pose."""
+        res = self.evaluate(poses, check_range=False)
+        slopes = self.noisy_slopes(res, rng)
+        return self.pupil.fit(slopes), np.asarray(res.valid, bool), slopes
 
 
 def measure(bench: Bench, lens: Lens, pose: ArrayLike | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
-    """Zernike vector (um, Noll modes 2..) the SH sensor reports for the lens at ``pose``.
+    """The Zernike vector the SH sensor reports for the lens at a pose.
 
-    pose: (6,) or (P, 6) pose vector(s) (mm, rad) relative to the nominal placement
-    (default: nominal). Noise is added when an rng is given.
+    Parameters
+    ----------
+    bench : Bench
+        The bench.
+    lens : Lens
+        The lens.
+    pose : array_like, shape (6,) or (P, 6), optional
+        Pose vector(s) (tx, ty, tz in mm; rx, ry, rz rotation vector in rad) relative to the
+        nominal placement (default: nominal).
+    rng : numpy.random.Generator, optional
+        When given, slope noise of ``bench.noise`` is added before the Zernike fit.
+
+    Returns
+    -------
+    numpy.ndarray, shape (m,) or (P, m)
+        Coefficients in um of wavefront, Noll modes 2.. (piston is never part of z),
+        RMS-normalised.
+
+    Raises
+    ------
+    PupilError, SensorRangeError, TraceError, PoseRangeError
+        A pose at which the lens cannot be measured (unlit pupil, spot out of range,
+        rays lost, pose out of the bench's limits).
     """
     pose = np.zeros(6) if pose is None else pose
     return ForwardModel(bench, lens).zernike(pose, rng=rng)

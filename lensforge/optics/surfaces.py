@@ -29,6 +29,7 @@ import numpy as np
 from numpy.polynomial import polynomial as P
 
 from ..errors import ConfigError
+from ..input_checks import MAX_SAG_COEFFICIENTS
 from .zernike import zernike_monomials
 
 __all__ = [
@@ -122,6 +123,9 @@ class CanonicalSurface:
 
 
 def _as_coeffs(name: str, value, length: int | None = None) -> np.ndarray:
+    length = MAX_SAG_COEFFICIENTS if length is None else length
+    if isinstance(value, (list, tuple)) and len(value) > length:  # before converting a million entries
+        raise ConfigError(f"{name}: at most {length} coefficients allowed, got {len(value)}")
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.ndim != 1:
         raise ConfigError(f"{name}: expected a list of numbers, got shape {arr.shape}")
@@ -204,17 +208,37 @@ class Surface:
 
 @dataclass(frozen=True)
 class Conic(Surface):
-    """Sphere / conic with optional even aspheric terms (Zemax 'Standard'/'Even Asphere')."""
+    """Sphere or conic with optional even aspheric terms (Zemax 'Standard' / 'Even Asphere'):
+    z = c r^2 / (1 + sqrt(1 - (1 + k) c^2 r^2)) + sum_i alpha_i r^(2i), mm.
+
+    Parameters
+    ----------
+    curvature : float
+        Base curvature c = 1/R, 1/mm (0: plane).
+    conic : float
+        Conic constant k (0 sphere, -1 paraboloid).
+    aspheric : tuple of float
+        Even aspheric coefficients alpha_i of r^(2i), i = 1..8, in mm^(1-2i).
+    """
 
     kind: ClassVar[str] = "conic"
 
 
 @dataclass(frozen=True)
 class Polynomial(Surface):
-    """z = base + sum_i (zeta_i x^i + gamma_i y^i), unnormalised, mm units.
+    """z = base + sum_i (zeta_i x^i + gamma_i y^i), unnormalised, mm units (the paper uses
+    i in {2, 4}).
 
-    zeta, gamma: coefficients of x^1.. and y^1.. (zeta[0] multiplies x^1).
-    The paper uses i in {2, 4}.
+    Parameters
+    ----------
+    curvature : float
+        Base curvature c = 1/R, 1/mm (0: plane).
+    conic : float
+        Conic constant k (0 sphere, -1 paraboloid).
+    aspheric : tuple of float
+        Even aspheric coefficients alpha_i of r^(2i), i = 1..8, in mm^(1-2i).
+    zeta, gamma : tuple of float
+        Coefficients of x^1, x^2, ... and y^1, y^2, ... (zeta[0] multiplies x^1), in mm^(1-i).
     """
 
     kind: ClassVar[str] = "polynomial"
@@ -253,8 +277,18 @@ def extended_monomial_exponents(n_terms: int) -> list[tuple[int, int]]:
 class ExtendedPolynomial(Surface):
     """Zemax-style 'Extended Polynomial': base + sum_i A_i E_i(x/R_n, y/R_n).
 
-    coefficients: A_i in mm, monomials ordered x, y, x^2, xy, y^2, x^3, ...;
-    norm_radius: R_n in mm.
+    Parameters
+    ----------
+    curvature : float
+        Base curvature c = 1/R, 1/mm (0: plane).
+    conic : float
+        Conic constant k (0 sphere, -1 paraboloid).
+    aspheric : tuple of float
+        Even aspheric coefficients alpha_i of r^(2i), i = 1..8, in mm^(1-2i).
+    coefficients : tuple of float
+        A_i in mm, monomials ordered x, y, x^2, xy, y^2, x^3, ...
+    norm_radius : float
+        Normalisation radius R_n, mm.
     """
 
     kind: ClassVar[str] = "extended_polynomial"
@@ -279,8 +313,18 @@ class ExtendedPolynomial(Surface):
 class ZernikeSag(Surface):
     """Zemax-style 'Zernike Standard Sag': base + sum_j A_j Z_j(x/R_n, y/R_n).
 
-    coefficients: A_j in mm for Noll j = 1, 2, ... (Noll order, RMS-normalised);
-    norm_radius: R_n in mm.
+    Parameters
+    ----------
+    curvature : float
+        Base curvature c = 1/R, 1/mm (0: plane).
+    conic : float
+        Conic constant k (0 sphere, -1 paraboloid).
+    aspheric : tuple of float
+        Even aspheric coefficients alpha_i of r^(2i), i = 1..8, in mm^(1-2i).
+    coefficients : tuple of float
+        A_j in mm for Noll j = 1, 2, ... (Noll order, RMS-normalised).
+    norm_radius : float
+        Normalisation radius R_n, mm.
     """
 
     kind: ClassVar[str] = "zernike_sag"
@@ -306,11 +350,23 @@ class ZernikeSag(Surface):
 
 @dataclass(frozen=True)
 class Freeform(Surface):
-    """Canonical form written out: base + sum P[p][q] x^p y^q (mm) + layer ripple.
+    """Canonical form written out: base + sum P[p][q] x^p y^q (mm) + layer ripple. Used for
+    as-built lenses and by tools that perturb a design.
 
-    poly: nested list (D+1) x (D+1) of monomial coefficients in mm units;
-    ripple_amplitude (mm) and ripple_period (mm): residual layer staircase.
-    Used for as-built lenses and by tools that perturb a design.
+    Parameters
+    ----------
+    curvature : float
+        Base curvature c = 1/R, 1/mm (0: plane).
+    conic : float
+        Conic constant k (0 sphere, -1 paraboloid).
+    aspheric : tuple of float
+        Even aspheric coefficients alpha_i of r^(2i), i = 1..8, in mm^(1-2i).
+    poly : tuple of tuple of float, shape (D+1, D+1)
+        Monomial coefficients P[p][q] of x^p y^q, in mm^(1-p-q).
+    ripple_amplitude : float
+        Amplitude of the residual layer staircase, mm (z = sag + a sin(2 pi sag / h)).
+    ripple_period : float
+        Its period h (the layer height), mm.
     """
 
     kind: ClassVar[str] = "freeform"

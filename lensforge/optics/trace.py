@@ -30,7 +30,7 @@ import numba as nb
 import numpy as np
 
 from .bench import Bench
-from .jit import compile_notice
+from .jit import compile_notice, kernel_threads
 from .lens import Lens
 from .pose import right_jacobian_so3, rotations, skew
 
@@ -694,10 +694,33 @@ def kernel_tangents(plus: list, minus: list, spacing) -> LensTangents:
 
 def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel: LensKernel | None = None,
                pose_derivatives: bool = False, lens_tangents: LensTangents | None = None) -> TraceResult:
-    """Trace beam rays with transverse coordinates uv (mm, relative to the beam centre;
-    (N, 2) for every pose, or (P, N, 2) per pose) through the lens at each pose (P, 6)
-    to the sensor plane, with the derivatives of where they land and of their slopes
-    along u and v, along the pose when ``pose_derivatives`` and along each lens tangent.
+    """Trace beam rays through the lens at each pose to the sensor plane, with exact
+    derivatives of where they land and of their slopes.
+
+    Parameters
+    ----------
+    bench : Bench
+        The bench (beam, placement).
+    lens : Lens
+        The lens.
+    poses : array_like, shape (P, 6) or (6,)
+        Poses (mm, rad) about nominal.
+    uv : array_like, shape (N, 2) or (P, N, 2)
+        Beam coordinates (mm, relative to the beam centre): the same for every pose, or per pose.
+    kernel : LensKernel, optional
+        The lens packed for the kernels (default: packed here).
+    pose_derivatives : bool
+        Also return d(x, y, L/N, M/N)/d(pose).
+    lens_tangents : LensTangents, optional
+        Also return the derivatives along these lens-parameter directions.
+
+    Returns
+    -------
+    TraceResult
+        ``xy`` (P, N, 2) mm in {S}, ``direction`` (P, N, 3), ``status`` (P, N) (0 = OK),
+        ``derivatives`` (P, N, 4, 2) along (u, v), ``pose_derivatives`` (P, N, 4, 6) per mm
+        and per rad or None, ``lens_derivatives`` (P, N, 4, l) or None; zero where status
+        is not OK.
     """
     kern = kernel or lens_kernel(lens, bench.laser.wavelength_nm)
     Rs, ts = pose_frames(bench, poses)
@@ -710,7 +733,7 @@ def trace_rays(bench: Bench, lens: Lens, poses: ArrayLike, uv: ArrayLike, kernel
     out = np.empty((n_p, uv.shape[1], 5))
     deriv = np.empty((n_p, uv.shape[1], m, 4))
     status = np.empty((n_p, uv.shape[1]), dtype=np.int8)
-    with compile_notice():
+    with compile_notice(), kernel_threads():
         _trace_grid(uv, Rs, ts, dT, lt.arrays() if lt is not None else None, *_beam_args(bench, lens), *_kernel_args(kern), out, deriv, status)
     d = np.swapaxes(deriv, -1, -2)  # (P, N, 4, m)
     m0 = 2 + dT.shape[1]
@@ -739,7 +762,7 @@ def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKern
     out = np.empty((n_p, n_t, 5))
     status = np.empty((n_p, n_t), dtype=np.int8)
     counts = np.empty((n_p, n_t), dtype=np.int64)
-    with compile_notice():
+    with compile_notice(), kernel_threads():
         _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), float(tol), int(maxit),
              out, status, counts)
     return out[..., :2], out[..., 2:4], out[..., 4], status, int(counts.sum())

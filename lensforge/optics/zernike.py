@@ -28,7 +28,6 @@ __all__ = [
     "osa_to_noll",
     "noll_to_thorlabs",
     "thorlabs_to_noll",
-    "n_modes_to_order",
     "modes_up_to_order",
     "zernike_monomials",
     "zernike",
@@ -41,9 +40,19 @@ __all__ = [
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
-    """Radial order n and signed azimuthal frequency m of Noll index j (j >= 1).
+    """Radial order and signed azimuthal frequency of a Noll index.
 
     Sign convention: m > 0 is a cosine term, m < 0 a sine term (even j -> cosine).
+
+    Parameters
+    ----------
+    j : int
+        Noll index, j >= 1 (1 = piston).
+
+    Returns
+    -------
+    tuple of int
+        (n, m): radial order n >= 0 and azimuthal frequency m, |m| <= n, n - |m| even.
     """
     j = int(j)
     if j < 1:
@@ -61,7 +70,20 @@ def noll_to_nm(j: int) -> tuple[int, int]:
 
 
 def nm_to_noll(n: int, m: int) -> int:
-    """Noll index of (n, m); m > 0 cosine, m < 0 sine."""
+    """Noll index of a radial order and signed azimuthal frequency.
+
+    Parameters
+    ----------
+    n : int
+        Radial order, n >= 0.
+    m : int
+        Azimuthal frequency, |m| <= n and n - |m| even; m > 0 cosine, m < 0 sine.
+
+    Returns
+    -------
+    int
+        Noll index j >= 1.
+    """
     if n < 0 or abs(m) > n or (n - abs(m)) % 2:
         raise ValueError(f"invalid Zernike (n, m) = ({n}, {m})")
     for j in range(n * (n + 1) // 2 + 1, (n + 1) * (n + 2) // 2 + 1):
@@ -71,13 +93,35 @@ def nm_to_noll(n: int, m: int) -> int:
 
 
 def noll_to_osa(j: int) -> int:
-    """OSA/ANSI index (from 0) of Noll index j."""
+    """OSA/ANSI index of a Noll index (edge conversion only; lensforge uses Noll inside).
+
+    Parameters
+    ----------
+    j : int
+        Noll index, j >= 1.
+
+    Returns
+    -------
+    int
+        OSA/ANSI index, counted from 0 (0 = piston).
+    """
     n, m = noll_to_nm(j)
     return (n * (n + 2) + m) // 2
 
 
 def osa_to_noll(i: int) -> int:
-    """Noll index of OSA/ANSI index i (from 0)."""
+    """Noll index of an OSA/ANSI index.
+
+    Parameters
+    ----------
+    i : int
+        OSA/ANSI index, counted from 0.
+
+    Returns
+    -------
+    int
+        Noll index j >= 1.
+    """
     i = int(i)
     if i < 0:
         raise ValueError(f"OSA index must be >= 0, got {i}")
@@ -89,23 +133,35 @@ def osa_to_noll(i: int) -> int:
 
 
 def noll_to_thorlabs(j: int) -> int:
-    """Thorlabs WFS mode number (OSA index + 1) of Noll index j."""
+    """Thorlabs WFS mode number of a Noll index (Thorlabs k = OSA index + 1).
+
+    Parameters
+    ----------
+    j : int
+        Noll index, j >= 1.
+
+    Returns
+    -------
+    int
+        Thorlabs mode number k >= 1.
+    """
     return noll_to_osa(j) + 1
 
 
 def thorlabs_to_noll(k: int) -> int:
-    """Noll index of Thorlabs WFS mode number k (k >= 1)."""
+    """Noll index of a Thorlabs WFS mode number.
+
+    Parameters
+    ----------
+    k : int
+        Thorlabs mode number (OSA index + 1), k >= 1.
+
+    Returns
+    -------
+    int
+        Noll index j >= 1.
+    """
     return osa_to_noll(int(k) - 1)
-
-
-def n_modes_to_order(n_modes_with_piston: int) -> int:
-    """Radial order whose full set (with piston) has this many modes."""
-    n = 0
-    while (n + 1) * (n + 2) // 2 < n_modes_with_piston:
-        n += 1
-    if (n + 1) * (n + 2) // 2 != n_modes_with_piston:
-        raise ValueError(f"{n_modes_with_piston} is not a complete Zernike order")
-    return n
 
 
 def modes_up_to_order(order: int, piston: bool = False) -> np.ndarray:
@@ -170,7 +226,20 @@ def zernike_gradient(j: int, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, 
 
 
 def to_osa_vector(noll_indices: ArrayLike, coefficients: ArrayLike) -> np.ndarray:
-    """Reorder coefficients given at Noll indices into an OSA-indexed vector (from 0)."""
+    """Reorder coefficients given at Noll indices into an OSA-indexed vector.
+
+    Parameters
+    ----------
+    noll_indices : array_like of int, shape (n,)
+        Noll index of each coefficient (j >= 1, distinct).
+    coefficients : array_like, shape (n,)
+        Zernike coefficients at those indices (any unit; um of wavefront in lensforge).
+
+    Returns
+    -------
+    numpy.ndarray, shape (max OSA index + 1,)
+        Entry i holds the coefficient of OSA/ANSI index i (from 0); modes not given are 0.
+    """
     noll_indices = np.asarray(noll_indices, dtype=int)
     coefficients = np.asarray(coefficients, dtype=float)
     osa = np.array([noll_to_osa(j) for j in noll_indices])
@@ -180,7 +249,20 @@ def to_osa_vector(noll_indices: ArrayLike, coefficients: ArrayLike) -> np.ndarra
 
 
 def from_osa_vector(osa_coefficients: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """(Noll indices, coefficients) of an OSA-indexed vector (from 0)."""
+    """Noll indices and coefficients of an OSA-indexed vector.
+
+    Parameters
+    ----------
+    osa_coefficients : array_like, shape (n,)
+        Entry i is the coefficient of OSA/ANSI index i (from 0).
+
+    Returns
+    -------
+    noll : numpy.ndarray of int, shape (n,)
+        Noll indices, ascending.
+    coefficients : numpy.ndarray, shape (n,)
+        The coefficients in that order (unit unchanged).
+    """
     c = np.asarray(osa_coefficients, dtype=float)
     noll = np.array([osa_to_noll(i) for i in range(len(c))])
     order = np.argsort(noll)
@@ -188,10 +270,36 @@ def from_osa_vector(osa_coefficients: ArrayLike) -> tuple[np.ndarray, np.ndarray
 
 
 def to_thorlabs_vector(noll_indices: ArrayLike, coefficients: ArrayLike) -> np.ndarray:
-    """Coefficients (um) reordered as the Thorlabs WFS reports them: entry k-1 holds mode k = OSA + 1."""
+    """Coefficients reordered as the Thorlabs WFS reports them.
+
+    Parameters
+    ----------
+    noll_indices : array_like of int, shape (n,)
+        Noll index of each coefficient (j >= 1, distinct).
+    coefficients : array_like, shape (n,)
+        Zernike coefficients, um of wavefront, RMS-normalised.
+
+    Returns
+    -------
+    numpy.ndarray, shape (max mode number,)
+        Entry k - 1 holds Thorlabs mode k = OSA index + 1 (um); modes not given are 0.
+    """
     return to_osa_vector(noll_indices, coefficients)
 
 
 def from_thorlabs_vector(thorlabs_coefficients: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """(Noll indices, coefficients) of a Thorlabs-ordered vector (entry k-1 = mode k)."""
+    """Noll indices and coefficients of a Thorlabs-ordered vector.
+
+    Parameters
+    ----------
+    thorlabs_coefficients : array_like, shape (n,)
+        Entry k - 1 is Thorlabs mode k (= OSA index + 1), um.
+
+    Returns
+    -------
+    noll : numpy.ndarray of int, shape (n,)
+        Noll indices, ascending.
+    coefficients : numpy.ndarray, shape (n,)
+        The coefficients in that order, um.
+    """
     return from_osa_vector(thorlabs_coefficients)

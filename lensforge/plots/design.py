@@ -375,10 +375,24 @@ def plot_convergence(history, title: str = "Design convergence"):
 
 
 def design_plots(design: "Design | Lens", out_dir: str | PathLike[str], stem: str | None = None) -> list[Path]:
-    """Write the PNGs of a design (or lens) into out_dir: singular values, sag maps with
-    the lit area, Zernike response, beam footprint over the working range, lenslet slope
-    field, dimensioned cross-section and (for a design file) the convergence history.
-    Returns the paths."""
+    """Write the PNGs of a design (or lens) into out_dir: singular values, sag maps with the lit
+    area, Zernike response, beam footprint over the working range, lenslet slope field,
+    dimensioned cross-section and (for a design file) the convergence history.
+
+    Parameters
+    ----------
+    design : Design or Lens
+        The design (a Lens is plotted on the default bench).
+    out_dir : str or os.PathLike
+        Output folder.
+    stem : str, optional
+        File-name stem (default: the design's model, or "lens").
+
+    Returns
+    -------
+    list of pathlib.Path
+        The written PNGs.
+    """
     from ..optics.bench import Bench
     from ..optics.lens import Lens
     from ..optics.sensitivity import metrics

@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import ConfigError
-from ..asbuilt.tolerances import COMPONENT_SPECS
+from ..asbuilt.tolerances import COMPONENT_SPECS, resolve_tolerances
 from ..optics.lens import LensSpec, resolve_lens
 from .runner import dask_client
-from .study import StudyConfig, resolve_tolerances, verify
+from .study import StudyConfig, verify
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -92,10 +92,41 @@ def sensitivity_analysis(lens: LensSpec, tolerances: Tolerances | str | Path, n_
                          *, config: StudyConfig | None = None, workers: int | None = 0, scheduler: str | None = None,
                          client: Client | None = None,
                          progress: bool = False) -> list[SensitivityRow]:
-    """Rows "none" (noise only), one per component (alone, at its given size), "all"."""
+    """Z error statistics with no tolerance (noise only), each component alone at its given
+    size, and all together, on the same seeds.
+
+    Parameters
+    ----------
+    lens : LensSpec
+        Design file, paper lens name or Lens.
+    tolerances : Tolerances, str or pathlib.Path
+        The tolerance model.
+    n_lenses : int
+        As-built lenses per study.
+    seed : int
+        Study seed (the same for every row: common random numbers).
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    config : StudyConfig, optional
+        Poses, calibration method, target etc. of every study.
+    workers : int, optional
+        0 = in this process, N = a local Dask cluster of N processes.
+    scheduler : str, optional
+        Address of an existing Dask scheduler.
+    client : distributed.Client, optional
+        An existing Dask client (reused across the studies).
+    progress : bool
+        Progress bar on stderr.
+
+    Returns
+    -------
+    list of SensitivityRow
+        Rows "none", one per component, "all": median, p95 and max of the rotation (deg)
+        and translation (mm) error of Z (None = infinite), failure rate, mean bias (6,).
+    """
     r = resolve_lens(lens)
     lens, bench = r.lens, r.bench_or(bench)
-    tol = resolve_tolerances(tolerances)
+    tol = resolve_tolerances(tolerances)[0]
     if tol is None:
         raise ConfigError("tolerances: the sensitivity analysis needs a tolerance model")
     config = config or StudyConfig()
@@ -229,16 +260,56 @@ def tolerance_budget(lens: LensSpec, tolerances: Tolerances | str | Path, *, tar
                      client: Client | None = None, components: Sequence[str] | None = None,
                      relative_to_noise: float | None = None,
                      progress: bool = False) -> Budget:
-    """The tolerance budget table (see module doc). Each evaluation is a study of
-    ``n_lenses`` as-built lenses with the same seeds; config sets the poses etc.
-    (its target is replaced by target_mm / target_deg). relative_to_noise=k sets
-    the target to k times the noise-only percentile errors instead (the as-built
-    lens may make the calibration at most k times worse than a perfect lens)."""
+    """The tolerance budget table (see the module docstring): for each component, the largest
+    scale of its size at which the calibration still meets the target.
+
+    Each evaluation is a study of ``n_lenses`` as-built lenses with the same seeds.
+
+    Parameters
+    ----------
+    lens : LensSpec
+        Design file, paper lens name or Lens.
+    tolerances : Tolerances, str or pathlib.Path
+        The tolerance model (its sizes are the scale 1).
+    target_mm, target_deg : float
+        Target percentile error of Z, mm and degrees (replaced with relative_to_noise).
+    n_lenses : int
+        As-built lenses per study.
+    seed : int
+        Study seed (the same for every evaluation: common random numbers).
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    config : StudyConfig, optional
+        Poses, calibration method, target etc. of every study.
+    workers : int, optional
+        0 = in this process, N = a local Dask cluster of N processes.
+    scheduler : str, optional
+        Address of an existing Dask scheduler.
+    client : distributed.Client, optional
+        An existing Dask client (reused across the studies).
+    progress : bool
+        Progress bar on stderr.
+    rel_tol : float
+        Relative tolerance of each component's search for its largest allowed scale.
+    max_evals : int
+        Studies per component at most.
+    components : sequence of str, optional
+        The components to budget (default: all).
+    relative_to_noise : float, optional
+        k: the target becomes k times the noise-only percentile errors (the as-built lens
+        may make the calibration at most k times worse than a perfect lens).
+
+    Returns
+    -------
+    Budget
+        One row per component (its largest allowed scale and errors), the noise-only
+        ratio, the dominant component (smallest allowed scale), the target and study size.
+    """
     from dataclasses import replace
 
     r = resolve_lens(lens)
     lens, bench = r.lens, r.bench_or(bench)
-    tol = resolve_tolerances(tolerances)
+    tol = resolve_tolerances(tolerances)[0]
     if tol is None:
         raise ConfigError("tolerances: the budget needs a tolerance model (--tolerances T.toml)")
     config = replace(config or StudyConfig(), target_mm=float(target_mm), target_deg=float(target_deg))

@@ -41,7 +41,7 @@ from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estim
 from ..display import UNOBSERVABLE, UNOBSERVABLE_NOTE
 from .statistics import median
 
-__all__ = ["LensStudy", "run_estimation_study", "study_lens", "format_table", "plot_study", "save_study",
+__all__ = ["LensStudy", "study_lens", "format_table", "save_study",
            "SCHEMA_VERSION"]
 
 SCHEMA_VERSION = 1
@@ -191,8 +191,7 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
             status[i] = PUPIL_LOST
             msgs.append(f"trial {i}: true pose does not light the pupil: {res.reason(0)}")
             continue
-        sigma = bench.noise.slope_sigma_urad * 1e-6
-        z = model.pupil.fit(res.slopes[0] + rng.normal(0.0, sigma, res.slopes[0].shape))
+        z = model.add_noise(res, rng)[0]
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UnobservableWarning)
@@ -223,15 +222,6 @@ def study_lens(bench: Bench, lens: Lens, name: str = "lens", trials: int = 100, 
     return LensStudy(name=name, method=method, errors=errors, true_poses=truth, status=status.astype(str),
                      reported_std=rstd, crlb_var=crlb, chi2=chi2, nees=nees, n_evals=nev, dof=dof,
                      unobservable=unobs, seconds=seconds, messages=tuple(msgs))
-
-
-def run_estimation_study(bench: Bench, lenses, trials: int = 100, method: str = "lm", seed: int = 0,
-                         initial: InitialPoseModel | None = None, **estimator_options) -> list[LensStudy]:
-    """Study several lenses: ``lenses`` is a mapping name -> Lens or a list of (name, Lens)."""
-    items = list(lenses.items()) if isinstance(lenses, dict) else list(lenses)
-    if not items:
-        raise ConfigError("lenses: give at least one lens")
-    return [study_lens(bench, lens, name, trials, method, seed, initial, **estimator_options) for name, lens in items]
 
 
 def _fmt(v, nd=1):

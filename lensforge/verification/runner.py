@@ -39,8 +39,9 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..interrupts import Interrupted
+from ..progress import progress_bar
 
-__all__ = ["TrialStore", "config_hash", "trial_seeds", "trial_seed", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV",
+__all__ = ["TrialStore", "config_hash", "trial_seed", "run_trials", "dask_client", "RunStats", "SINGLE_THREAD_ENV",
            "single_threaded"]
 
 STORE_SCHEMA = 1
@@ -80,11 +81,6 @@ class _LazySeeds:
         if not 0 <= i < self.n:
             raise IndexError(i)
         return trial_seed(self.seed, i)
-
-
-def trial_seeds(seed: int, n: int) -> list[np.random.SeedSequence]:
-    """Per-trial seed sequences: child i of SeedSequence(seed), independent of n."""
-    return [trial_seed(seed, i) for i in range(int(n))]
 
 
 def _dumps(record: dict) -> str:
@@ -284,19 +280,6 @@ class RunStats:
     workers: int
 
 
-def _progress(enabled: bool, total: int, done: int, description: str):
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    prog = Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TimeElapsedColumn(), TimeRemainingColumn(),
-        console=Console(stderr=True), disable=not enabled, transient=True,  # budget runs many studies: no finished line each
-    )
-    task = prog.add_task(description or "trials", total=total, completed=done)
-    return prog, task
-
-
 @contextmanager
 def single_threaded():
     """Within the block, BLAS (threadpoolctl) and numba run on one thread in the calling thread.
@@ -362,26 +345,26 @@ def run_trials(
             store.put(i, rec)
         records[i] = rec
 
-    prog, task = _progress(progress, n_trials, n_resumed, description)
     if client is not None:
         mode = "client"
     else:
         mode = "serial" if (scheduler is None and workers == 0) else ("scheduler" if scheduler else "local")
     n_workers = 0
     n_todo = n_trials - len(records)
-    with prog:
+    with progress_bar(n_trials, description or "trials", enabled=progress) as bar:
+        bar.update(n_resumed)
         if not n_todo:
             pass
         elif mode == "serial":
             with single_threaded():
                 for i in todo:
                     finish(i, trial_fn(context, i, seeds[i]))
-                    prog.advance(task)
+                    bar.advance()
         elif client is not None:
-            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
+            n_workers = _submit_all(client, trial_fn, context, todo, seeds, finish, lambda: bar.advance())
         else:
             with dask_client(workers, scheduler) as cl:
-                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, lambda: prog.advance(task))
+                n_workers = _submit_all(cl, trial_fn, context, todo, seeds, finish, lambda: bar.advance())
     stats = RunStats(n_todo, n_resumed, time.perf_counter() - t0, mode, n_workers)
     return {i: records[i] for i in sorted(records)}, stats
 

@@ -35,22 +35,22 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ..errors import CalibrationError, ConfigError, LensforgeError, PupilError, TraceError
+from ..errors import CalibrationError, ConfigError, PupilError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
-from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 from ..optics.shack_hartmann import ForwardModel
-from ..calibration.handeye import solve_handeye
 from ..calibration.initial_poses import InitialPoseModel, prior_covariance
 from ..calibration.pose_design import candidate_poses, design_poses, predicted_uncertainty
-from ..calibration.pose_estimation import ESTIMATORS, UnobservableWarning, estimate_pose_model
+from ..calibration.pose_estimation import ESTIMATORS
+from ..calibration.pipeline import estimate_one, run
 from ..calibration.session import lens_pose_crlb, lit_mask
 from ..calibration.robot import PAPER_Z, Scene, flange_pose, paper_scene, random_lens_poses
+from .session_sim import record_session
 from .statistics import median
 
 __all__ = ["scenario_scene", "ScenarioConfig", "CalibrationRun", "run_calibration", "plan_poses", "compare_pose_designs",
@@ -206,28 +206,6 @@ def plan_poses(bench: Bench, lens: Lens, design: str, rng: np.random.Generator, 
     return x, predicted_uncertainty(scene, x, cov_B)
 
 
-def _estimate(model, z, x0, cfg: ScenarioConfig, prior):
-    opts = {}
-    if cfg.estimator == "ukf":
-        opts.update(prior_cov=prior, ukf_repeats=cfg.ukf_repeats)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UnobservableWarning)
-        return estimate_pose_model(model, z, x0=x0, method=cfg.estimator, **opts)
-
-
-def _measure(model: ForwardModel, x_true: np.ndarray, rng: np.random.Generator):
-    """Noisy Zernikes of each pose, None where the pupil is not lit."""
-    res = model.evaluate(x_true, check_range=False)
-    sigma = model.bench.noise.slope_sigma_urad * 1e-6
-    out = []
-    for i in range(len(x_true)):
-        if not res.valid[i]:
-            out.append(None)
-            continue
-        out.append(model.pupil.fit(res.slopes[i] + rng.normal(0.0, sigma, res.slopes[i].shape)))
-    return out
-
-
 def run_calibration(bench: Bench, lens: Lens, x_planned, rng: np.random.Generator, cfg: ScenarioConfig | None = None,
                     scene: Scene | None = None, model: ForwardModel | None = None) -> CalibrationRun:
     """Simulate one calibration with the planned lens poses x_planned (n, 6) (see module doc)."""
@@ -249,67 +227,48 @@ def run_calibration(bench: Bench, lens: Lens, x_planned, rng: np.random.Generato
     msgs = []
 
     def visit(x_cmd, correction):
-        """Command lens poses x_cmd (k, 6), offset-corrected; return A_cmd, true lens pose vectors."""
+        """Command lens poses x_cmd (k, 6), offset-corrected; return the flange poses as commanded
+        and as reached (the robot lands with its repeatability noise)."""
         B_cmd = T_nom @ pose_to_matrix(x_cmd) @ invert_poses(pose_to_matrix(correction))
         A_cmd = scene.Z @ B_cmd @ invert_poses(scene.X)
-        A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(x_cmd)))
-        B_true = Z_inv @ A_true @ X_true
-        return A_cmd, matrix_to_pose(invert_poses(T_nom) @ B_true)
+        return A_cmd, A_cmd @ pose_to_matrix(scene.noise.sample(rng, len(x_cmd)))
 
+    opts = {"prior_cov": prior, "ukf_repeats": cfg.ukf_repeats} if cfg.estimator == "ukf" else {}
     # 2. convergence poses: learn the constant commanded-vs-actual offset
     offset = np.zeros(6)
     if cfg.n_convergence:
         xc = random_lens_poses(rng, cfg.n_convergence, cfg.convergence_translation_mm, cfg.convergence_rotation_rad)
-        _, xt = visit(xc, offset)
+        _, A_true = visit(xc, offset)
+        zc, lit, _ = model.measure_noisy(matrix_to_pose(invert_poses(T_nom) @ Z_inv @ A_true @ X_true), rng)
         logs = []
-        for i, z in enumerate(_measure(model, xt, rng)):
-            if z is None:
+        for i in range(len(xc)):
+            if not lit[i]:
                 msgs.append(f"convergence pose {i}: pupil not lit")
                 continue
-            try:
-                est = _estimate(model, z, np.zeros(6), cfg, prior)
-            except LensforgeError as e:
-                msgs.append(f"convergence pose {i}: {e}")
+            est, why = estimate_one(model, zc[i], [np.zeros(6)], cfg.estimator, **opts)
+            if est is None:
+                msgs.append(f"convergence pose {i}: {why}")
                 continue
-            if est.converged:
-                logs.append(_log_right(pose_to_matrix(xc[i]), pose_to_matrix(est.pose)))
+            logs.append(_log_right(pose_to_matrix(xc[i]), pose_to_matrix(est.pose)))
         if logs:
             offset = np.mean(logs, axis=0)
-    # 3. calibration poses
-    A_cmd, xt = visit(x_planned, offset)
-    A_used, B_used, C_used = [], [], []
-    lost = nconv = 0
-    for i, z in enumerate(_measure(model, xt, rng)):
-        if z is None:
-            lost += 1
-            msgs.append(f"calibration pose {i}: pupil not lit")
-            continue
-        try:
-            est = _estimate(model, z, x_planned[i], cfg, prior)
-        except (PupilError, TraceError) as e:
-            lost += 1
-            msgs.append(f"calibration pose {i}: {e}")
-            continue
-        if not est.converged:
-            nconv += 1
-            msgs.append(f"calibration pose {i}: {est.message}")
-            continue
-        A_used.append(A_cmd[i])
-        B_used.append(T_nom @ pose_to_matrix(est.pose))
-        C_used.append(pose_vector_cov_to_right(est.pose, est.cov))
-    if len(A_used) < 3:
-        raise CalibrationError(f"scenario: only {len(A_used)} usable calibration poses ({lost} pupil lost, "
-                               f"{nconv} not converged); shrink the working box")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        he = solve_handeye(np.array(A_used), np.array(B_used), method="ml", sigma=scene.noise,
-                           cov_B=np.array(C_used), on_degenerate="warn")
+    # 3. calibration poses: the session the cell records, calibrated by the one pipeline (two-stage)
+    A_cmd, A_true = visit(x_planned, offset)
+    rec = record_session(model, model, scene, A_true, A_cmd, X_true, Z_true, rng)
+    try:
+        res = run(rec.data, "two-stage", estimator=cfg.estimator, estimator_options=opts)
+    except CalibrationError as e:
+        raise CalibrationError(f"scenario: {e}; shrink the working box") from None
+    lost = int((~rec.lit).sum())
+    nconv = sum(r.get("code") == "no-estimate" for r in res.poses_rejected)
+    msgs += [f"calibration pose {r['pose']}: {r['reason']}" for r in res.poses_rejected]
+    he = res.handeye
     ez = _log_right(Z_true, he.Z)
     ex = _log_right(X_true, he.X)
     nees = float(ez @ np.linalg.solve(he.cov_Z, ez))
     return CalibrationRun(Z_true=Z_true, Z_est=he.Z, X_true=X_true, X_est=he.X, z_error=ez, x_error=ex,
                           cov_Z=he.cov_Z, cov_X=he.cov_X, nees_Z=nees, chi2_dof=float(he.chi2_dof),
-                          x_planned=x_planned, n_used=len(A_used), pupil_lost=lost, not_converged=nconv,
+                          x_planned=x_planned, n_used=len(res.poses_used), pupil_lost=lost, not_converged=nconv,
                           offset=offset, estimator=cfg.estimator, seconds=time.perf_counter() - t0,
                           observable=bool(he.observable), messages=tuple(msgs) + tuple(he.warnings))
 

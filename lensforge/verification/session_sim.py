@@ -15,6 +15,13 @@ records:
   the unlit ids and the seed.
 
 The session is a pure function of (design, tolerances, seed, robot, n).
+
+``record_session`` is the one session simulator under every simulated calibration
+(this module's files, ``study``, ``scenario``, ``budget``): from the true cell (flange
+poses as reached and as recorded, X, Z) and the lens as built it forms the true lens
+poses, the noisy measurements (``ForwardModel.measure_noisy``) and the ``SessionData``
+the calibration pipeline (``calibration.pipeline``) takes, as ``calibrate`` builds it
+from a real session's files.
 """
 
 from __future__ import annotations
@@ -31,22 +38,59 @@ from ..calibration import formats
 from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.robot import RobotModel
 from ..calibration.formats import write_bundle
-from ..calibration.session import SCHEMA_VERSION, Plan, calibrate, frame_dict, load_design_lens, plan
+from ..calibration.robot import Scene
+from ..calibration.session import Plan, calibrate, load_design_lens, plan
+from ..calibration.session_result import SCHEMA_VERSION, SessionData, frame_dict
 from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json
-from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE, Tolerances, load_tolerances, sample_as_built
+from ..asbuilt.tolerances import resolve_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import LensSpec
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
 
-__all__ = ["SimulatedSession", "simulate_session", "check_sessions", "session_outcome", "summarise_sessions",
-           "NEES_3SIGMA_6DOF"]
+__all__ = ["SimulatedSession", "simulate_session", "record_session", "RecordedSession", "nees", "check_sessions",
+           "session_outcome", "summarise_sessions", "NEES_3SIGMA_6DOF"]
 
 # ASSUMPTION (as verification/scenario.py): 1-sigma CAD error of the sensor placement Z
 SENSOR_CAD_TRANSLATION_MM = 0.2
 SENSOR_CAD_ROTATION_RAD = math.radians(0.2)
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedSession:
+    """What ``record_session`` returns: data (the SessionData of the lit poses, measured
+    through the lens as built, modelled with the design), x_true (n, 6) true lens poses of
+    every pose (mm, rad), lit (n,) which poses the sensor measured, slopes (n, lenslets, 2)
+    the noisy lenslet slopes (rad) the Zernike vectors were fitted from."""
+
+    data: SessionData
+    x_true: np.ndarray
+    lit: np.ndarray
+    slopes: np.ndarray  # (n, lenslets, 2) rad: the noisy lenslet slopes of every pose
+
+
+def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, A_true, A_recorded, X, Z,
+                   rng: np.random.Generator, ids=None, robot: RobotModel | None = None) -> RecordedSession:
+    """Simulate what the sensor and the robot record (module docstring).
+
+    nominal: the design's model (what the calibration assumes); measured: the lens as built
+    (what makes the light); scene: the robot's nominal cell (its noise is the calibration's
+    robot model); A_true / A_recorded: (n, 4, 4) flange poses as reached and as the robot
+    reports them (mm); X, Z: the true grasp ^E T_O and sensor ^W T_S; rng: the sensor-noise
+    stream (drawn for every lenslet of every pose); ids: pose ids (default "1".."n").
+    Unlit poses are left out of the data with the reason "unlit", as a bench session
+    leaves them out of the WFS file."""
+    A_true, A_recorded = np.asarray(A_true, dtype=float), np.asarray(A_recorded, dtype=float)
+    ids = tuple(str(i + 1) for i in range(len(A_true))) if ids is None else tuple(ids)
+    x_true = matrix_to_pose(invert_poses(scene.T_SO_nominal) @ invert_poses(Z) @ A_true @ X)
+    z, lit, slopes = measured.measure_noisy(x_true, rng)
+    rejected = tuple({"pose": i, "reason": "unlit: the pupil is not lit at this pose (no WFS measurement)",
+                      "code": "unlit"} for i, ok in zip(ids, lit) if not ok)
+    data = SessionData(ids=tuple(np.array(ids)[lit].tolist()), A=A_recorded[lit], z=z[lit], model=nominal,
+                       robot=robot, scene=scene, rejected=rejected)
+    return RecordedSession(data=data, x_true=x_true, lit=lit, slopes=slopes)
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,34 +112,90 @@ class SimulatedSession:
     plan: object
     header: dict
     seed: int
+    slopes: np.ndarray | None = None  # (k, n_pupil, 2) rad: the noisy lenslet slopes behind zernike_thorlabs
+    bench: Bench | None = None
 
-    def files(self) -> dict:
-        """{robot_poses.csv, wfs_zernike.csv, truth.json}: name -> text."""
+    def instrument_files(self, spot_format: str = "npz") -> dict:
+        """The same measurements in the instrument's own layouts (``calibration.thorlabs``):
+        ``thorlabs/pose_<id>.csv`` (WFS software exports, cp1252, CRLF) and
+        ``spot_fields/pose_<id>.<npz|csv>`` (SDK spot deviations in pixels over the whole
+        lenslet grid, NaN outside the pupil, with the MLA data). The spot fields hold the very
+        slopes the Zernikes were fitted from."""
+        from ..calibration import thorlabs
+        from ..optics.shack_hartmann import lenslet_pupil
+
+        sensor = self.bench.sensor
+        out = {}
+        for i, z in zip(self.wfs_ids, self.zernike_thorlabs):
+            out[f"thorlabs/pose_{int(i):02d}.csv" if str(i).isdigit() else f"thorlabs/pose_{i}.csv"] = \
+                thorlabs.export_text(z, self.header, comment=f"lensforge simulated session, seed {self.seed}")
+        n_side = int(np.floor(sensor.aperture_mm / sensor.pitch_mm + 1e-9))
+        pupil = lenslet_pupil(sensor)
+        ix = np.rint(pupil.centres[:, 0] / sensor.pitch_mm + 0.5 * (n_side - 1)).astype(int)
+        iy = np.rint(pupil.centres[:, 1] / sensor.pitch_mm + 0.5 * (n_side - 1)).astype(int)
+        f_um, px_um = sensor.lenslet_focal_mm * 1e3, sensor.pixel_mm * 1e3
+        mla = {"focal_length_um": f_um, "lenslet_pitch_um": sensor.pitch_mm * 1e3, "pixel_pitch_um": px_um,
+               "center_offset_mm": (0.0, 0.0)}
+        head = {k: v for k, v in self.header.items()}
+        for i, s in zip(self.wfs_ids, self.slopes):
+            dev = np.full((n_side, n_side, 2), np.nan)
+            dev[iy, ix] = s * f_um / px_um  # rad -> px: deviation = slope * focal length / pixel pitch
+            name = f"spot_fields/pose_{int(i):02d}" if str(i).isdigit() else f"spot_fields/pose_{i}"
+            if spot_format == "npz":
+                out[name + ".npz"] = thorlabs.spot_field_npz(dev, header=head, **mla)
+            else:
+                out[name + ".csv"] = thorlabs.spot_field_csv(dev, header=head, **mla)
+        return out
+
+    def files(self, instrument: bool = False) -> dict:
+        """{robot_poses.csv, wfs_zernike.csv, truth.json}: name -> text; instrument: also the
+        instrument-layout folders (``instrument_files``)."""
         truth = {"schema_version": SCHEMA_VERSION, "kind": "session_truth", "seed": self.seed,
                  "Z": self.Z.tolist(), "X": self.X.tolist(), "lens": self.lens.to_dict(),
                  "lens_poses": {i: x for i, x in zip(self.ids, self.x_true.tolist())},
                  "unlit": list(self.unlit), "robot": self.plan.robot.name}
-        return {"robot_poses.csv": formats.xyzabc_csv(self.ids, self.A_recorded),
-                "wfs_zernike.csv": formats.wfs_csv(self.wfs_ids, self.zernike_thorlabs, self.header),
-                "truth.json": dumps_json(truth) + "\n"}
+        out = {"robot_poses.csv": formats.xyzabc_csv(self.ids, self.A_recorded),
+               "wfs_zernike.csv": formats.wfs_csv(self.wfs_ids, self.zernike_thorlabs, self.header),
+               "truth.json": dumps_json(truth) + "\n"}
+        return {**out, **self.instrument_files()} if instrument else out
 
 
 def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | None = "default", seed: int = 0,
                      bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
                      grasp: InitialPoseModel | None = None, session_plan: Plan | None = None) -> SimulatedSession:
-    """Simulate one bench session (see the module docstring).
+    """Simulate one bench session: the files a real session writes, to rehearse ``calibrate``
+    (see the module docstring).
 
-    tolerances: Tolerances, a TOML path, "default" (the default tolerance file) or
-    None (the lens exactly as designed); seed: everything random flows from it;
-    session_plan: reuse a Plan (else ``plan(design, robot=robot, n=n, seed=seed)``).
+    Parameters
+    ----------
+    design : LensSpec
+        Design file, paper lens name or Lens.
+    tolerances : Tolerances, str, pathlib.Path or None
+        Tolerances, a TOML path, "default" (the default tolerance file) or None (the lens
+        exactly as designed).
+    seed : int
+        Everything random flows from it.
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    robot : RobotModel or str, optional
+        RobotModel, registry name or TOML path (default KR 10).
+    n : int
+        Calibration poses.
+    grasp : InitialPoseModel, optional
+        How the gripper holds the lens (default: ``initial_poses``' model).
+    session_plan : Plan, optional
+        Reuse a Plan (else ``plan(design, robot=robot, n=n, seed=seed)``).
+
+    Returns
+    -------
+    SimulatedSession
+        ``ids``, recorded and true flange poses ``A_recorded`` / ``A_true`` (n, 4, 4) mm,
+        ``wfs_ids`` (the lit poses), ``zernike_thorlabs`` (k, K) um in Thorlabs order, the
+        true ``Z`` and ``X`` (4x4, mm), the as-built ``lens``, ``x_true`` (n, 6) and the plan;
+        ``files()`` gives robot_poses.csv, wfs_zernike.csv and truth.json as text.
     """
     lens, bench = load_design_lens(design, bench)
-    if isinstance(tolerances, str) and tolerances == "default":
-        tolerances = load_tolerances(DEFAULT_TOLERANCES_FILE)
-    elif isinstance(tolerances, (str, Path)):
-        tolerances = load_tolerances(tolerances)
-    elif tolerances is not None and not isinstance(tolerances, Tolerances):
-        raise ConfigError("tolerances: expected a Tolerances, a TOML path, 'default' or None")
+    tolerances = resolve_tolerances(tolerances)[0]
     p = session_plan or plan(lens, bench=bench, robot=robot, n=n, seed=seed)
     scene = p.scene
     grasp = grasp or InitialPoseModel()
@@ -107,21 +207,26 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
                                                                 + [SENSOR_CAD_ROTATION_RAD] * 3))
     A_true = p.A
     A_rec = A_true @ pose_to_matrix(scene.noise.sample(np.random.default_rng(ss_robot), len(p.ids)))
-    B_true = invert_poses(Z) @ A_true @ X
-    x_true = matrix_to_pose(invert_poses(scene.T_SO_nominal) @ B_true)
-    model = ForwardModel(bench, as_built, validate=False)
-    res = model.evaluate(x_true, check_range=False)
-    sigma = bench.noise.slope_sigma_urad * 1e-6
-    slopes = res.slopes + np.random.default_rng(ss_sensor).normal(0.0, sigma, res.slopes.shape)
-    z = model.pupil.fit(slopes)
-    lit = np.asarray(res.valid, bool)
-    zt = np.array([to_thorlabs_vector(np.concatenate([[1], model.modes]), np.concatenate([[0.0], zi])) for zi in z[lit]])
+    measured = ForwardModel(bench, as_built, validate=False)
+    # the files carry no model: the measured model stands in for the nominal one
+    rec = record_session(measured, measured, scene, A_true, A_rec, X, Z, np.random.default_rng(ss_sensor), p.ids)
+    model, lit, x_true = measured, rec.lit, rec.x_true
+    zt = np.array([to_thorlabs_vector(np.concatenate([[1], model.modes]), np.concatenate([[0.0], zi]))
+                   for zi in rec.data.z])
     header = {"wavelength_nm": bench.laser.wavelength_nm, "pupil_center_mm": tuple(bench.sensor.pupil_center_mm),
               "pupil_radius_mm": bench.sensor.pupil_radius_mm}
     ids = p.ids
     return SimulatedSession(ids=ids, A_recorded=A_rec, A_true=A_true, wfs_ids=tuple(np.array(ids)[lit].tolist()),
                             zernike_thorlabs=zt.reshape(int(lit.sum()), -1), Z=Z, X=X, lens=as_built, x_true=x_true,
-                            unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed))
+                            unlit=tuple(np.array(ids)[~lit].tolist()), plan=p, header=header, seed=int(seed),
+                            slopes=rec.slopes[lit], bench=bench)
+
+
+def nees(T_true, T_est, cov) -> float:
+    """Normalised estimation error squared e^T cov^-1 e of e = log(T_true^-1 T_est)
+    (right perturbation, (mm, rad)); its mean over sessions is the dimension (6)."""
+    e = matrix_to_pose(np.linalg.solve(T_true, T_est))
+    return float(e @ np.linalg.solve(cov, e))
 
 
 # 3-sigma-equivalent region of a 6-D Gaussian: the chi2(6) quantile at P(|N(0,1)| <= 3) = 0.9973
@@ -150,7 +255,7 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
     sig = np.array([std[k_] for k_ in ("tx_mm", "ty_mm", "tz_mm")] +
                    [math.radians(std[k_]) for k_ in ("rx_deg", "ry_deg", "rz_deg")])
     err_parent = np.concatenate([r.Z[:3, 3] - s.Z[:3, 3], rotvecs(r.Z[:3, :3] @ s.Z[:3, :3].T)])
-    return {"seed": int(seed), "failed": None, "nees": float(e @ np.linalg.solve(r.handeye.cov_Z, e)),
+    return {"seed": int(seed), "failed": None, "nees": nees(s.Z, r.Z, r.handeye.cov_Z),
             "inside_3sigma_each_axis": bool(np.all(np.abs(err_parent) <= 3 * sig)), "chi2_dof": float(r.chi2_dof),
             "p_value": float(r.p_value), "z_translation_error_mm": float(np.linalg.norm(e[:3])),
             "z_rotation_error_deg": math.degrees(float(np.linalg.norm(e[3:]))), "start": r.extra.get("start")}

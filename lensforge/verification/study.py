@@ -1,13 +1,12 @@
 """As-built tolerance Monte Carlo: what printing and polishing do to the calibration.
 
 One trial = one as-built lens. The lens is drawn with
-``manufacturing.sample_as_built`` from the trial's own random stream; the whole
+``asbuilt.tolerances.sample_as_built`` from the trial's own random stream; the whole
 calibration procedure is then simulated: the robot moves the lens through the
 calibration plan (``n_poses`` poses), the *as-built* lens produces the
 Shack-Hartmann measurements (plus sensor noise, plus robot pose noise), while the
-estimator uses the *nominal* design model (it does not know the lens was built
-differently). The poses are estimated, the robot-world-hand-eye problem
-A_i X = Z B_i is solved, and the trial records the error of Z = ^W T_S (rotation
+calibration uses the *nominal* design model (it does not know the lens was built
+differently; the joint method estimates the as-built lens with X and Z). The trial records the error of Z = ^W T_S (rotation
 in deg, translation in mm), the per-pose estimation bias (mean estimate - truth
 per DOF) and the failures (pupil lost for the as-built lens at a pose,
 non-convergence, too few poses left).
@@ -18,15 +17,14 @@ into three fixed sub-streams: 0 = as-built lens, 1 = scene (grasp, robot noise),
 as-built deviations, never the noise draws (common random numbers), and zero
 tolerances give exactly the noise-only trial (the as-built stream is unused).
 
-Pose estimation is calibration's one estimator, ``estimate_poses_batch`` (whitened
-least squares, Levenberg-Marquardt batched over all poses of a trial so that every
-forward-model call traces all poses together).
+The session is simulated by ``session_sim.record_session`` and calibrated by the one
+pipeline ``calibration.pipeline.run``: the code ``lensforge calibrate`` runs on a bench
+session, outlier passes, fallbacks and model check included.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from functools import cached_property
@@ -36,24 +34,22 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..calibration.handeye import solve_handeye
+from ..asbuilt.tolerances import Tolerances, resolve_tolerances, sample_as_built
 from ..calibration.initial_poses import InitialPoseModel
-from ..calibration.pose_estimation import estimate_poses_batch
-from ..calibration.robot import flange_pose, lens_pose_matrix, paper_scene
+from ..calibration.pipeline import TooFewPosesError, run
+from ..calibration.robot import flange_pose, paper_scene
+from ..calibration.session_result import OUTLIER_ALPHA
 from ..errors import ConfigError, LensforgeError, PoseRangeError
-from ..asbuilt.tolerances import load_tolerances, sample_as_built
 from ..optics.bench import Bench
 from ..optics.lens import Lens, LensSpec, resolve_lens
-from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, pose_vector_cov_to_right, transform_error
+from ..optics.pose import DOF_NAMES, matrix_to_pose, pose_to_matrix, transform_error
 from ..optics.shack_hartmann import ForwardModel, check_pose_range
-from ..calibration.pose_estimation import estimate_poses_batch
-from .statistics import error_stats, outcome_counts
 from .runner import TrialStore, config_hash, run_trials
+from .session_sim import nees, record_session
+from .statistics import error_stats, outcome_counts
 
 if TYPE_CHECKING:
     from distributed import Client
-
-    from ..asbuilt.tolerances import Tolerances
 
 __all__ = ["StudyConfig", "StudyResult", "verify", "run_trial", "StudyContext", "summarize_errors",
            "SCHEMA_VERSION", "CALIBRATIONS", "calibration_records", "joint_statistics"]
@@ -145,22 +141,18 @@ class StudyContext:
         """The nominal forward model, built once per context copy (i.e. once per worker)."""
         return ForwardModel(self.bench, self.lens)
 
-    @cached_property
-    def lens_parameterisation(self):
-        """theta of the joint calibration (built once per context copy)."""
-        from .joint_trial import study_parameterisation
-
-        tol = self.tolerances
+    @property
+    def joint_prior(self):
+        """The joint method's lens prior: the study's tolerances, the default file
+        (``config.joint_prior == "default"``), or zero tolerances for a noise-only study
+        (theta empty: the joint fit without lens parameters)."""
         if self.config.joint_prior == "default":
-            from ..asbuilt.tolerances import Tolerances
-
-            tol = Tolerances()
-        return study_parameterisation(self.bench, self.lens, tol, self.plan)
+            return "default"
+        return self.tolerances if self.tolerances is not None else Tolerances.zero()
 
     def __getstate__(self):  # ship the inputs, not the cached models
         d = dict(self.__dict__)
         d.pop("nominal_model", None)
-        d.pop("lens_parameterisation", None)
         return d
 
     def __setstate__(self, d):
@@ -186,15 +178,58 @@ def _fail(reason: str, **extra) -> dict:
     return rec
 
 
+def _calibration_record(res, rec, X_true, Z_true) -> dict:
+    """A trial record (ok, Z and X errors, per-pose counts, model check) of a pipeline result."""
+    rot, trans = transform_error(Z_true, res.Z)
+    xrot, xtrans = transform_error(X_true, res.X)
+    no_est = [r for r in res.poses_rejected if r.get("code") == "no-estimate"]
+    out = {"ok": True, "failure": "", "rot_err_deg": rot, "trans_err_mm": trans, "x_rot_err_deg": xrot,
+           "x_trans_err_mm": xtrans, "n_used": len(res.poses_used), "n_pupil_lost": int((~rec.lit).sum()),
+           "n_not_converged": len(no_est),
+           "n_out_of_range": sum("left the bench's pose range" in r["reason"] for r in no_est),
+           "n_outliers": sum(r.get("code") == "outlier" for r in res.poses_rejected),
+           "chi2": float(res.chi2), "dof": int(res.dof), "p_value": float(res.p_value),
+           "mismatch": bool(res.p_value < OUTLIER_ALPHA), "nees_Z": nees(Z_true, res.Z, res.handeye.cov_Z),
+           "Z_sigma_mm": float(np.sqrt(np.trace(res.handeye.cov_Z[:3, :3]))),
+           "Z_sigma_deg": math.degrees(float(np.sqrt(np.trace(res.handeye.cov_Z[3:, 3:])))),
+           "fallback": res.extra.get("fallback", {}).get("reason", "")}
+    if not res.valid:  # not a calibration (``calibrate`` exits 3): the trial fails; its errors stay for diagnosis
+        out.update(ok=False, failure=f"model check failed: {res.check_failure}")
+    if res.estimates:  # two-stage: the per-pose estimation bias against the true lens poses
+        index = {i: k for k, i in enumerate(np.array(rec.data.ids))}
+        lit_idx = np.flatnonzero(rec.lit)
+        err = np.array([x - rec.x_true[lit_idx[index[i]]] for i, x, _ in res.estimates])
+        out.update(bias=err.mean(axis=0).tolist(), bias_std=err.std(axis=0).tolist(),
+                   handeye_chi2_dof=float(res.chi2_dof), handeye_observable=bool(res.handeye.observable),
+                   chi2_dof=float(np.mean([p["estimate_chi2_dof"] for p in res.per_pose])))
+    else:
+        jr = res.handeye.joint
+        s = jr.summary()
+        out.update(bias=[0.0] * 6, theta=s["theta"], n_identifiable=s["n_identifiable"],
+                   iterations=jr.iterations, converged=bool(jr.converged), n_traced=jr.n_traced,
+                   start=res.extra.get("start", ""))
+    return out
+
+
 def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict:
     """Simulate the calibration with one as-built lens; returns a JSON-able record.
 
+    The session is simulated by ``session_sim.record_session`` (the robot reaches the
+    commanded flange pose up to its repeatability and records the commanded one; the
+    as-built lens makes the light; unlit poses give no measurement) and calibrated by the
+    one pipeline ``calibration.pipeline`` that ``lensforge calibrate`` runs: always the
+    two-stage method, and with calibration "joint" also the joint method on the same data,
+    started from the two-stage solution (record under "joint").
+
+    A calibration that fails its chi2 model check (``CalibrationResult.valid`` False: what
+    ``calibrate`` refuses with exit 3) fails the trial ("model check failed: ..."); its
+    errors stay in the record.
+
     Keys: ok, failure ("" or why), rot_err_deg / trans_err_mm (Z = ^W T_S error),
     x_rot_err_deg / x_trans_err_mm (grasp X error), bias (6: mean estimate - truth,
-    mm and rad), bias_std (6), n_used, n_pupil_lost, n_not_converged, chi2_dof
-    (pose fits, mean), handeye_chi2_dof, and, with calibration "joint", the joint calibration's
-    record (``joint_trial.joint_trial_record``) under "joint", run on the same data
-    from the two-stage solution.
+    mm and rad), bias_std (6), n_used, n_pupil_lost, n_not_converged, n_out_of_range,
+    n_outliers, chi2_dof (pose fits, mean), handeye_chi2_dof, chi2, dof, p_value, mismatch,
+    nees_Z, Z_sigma_mm / Z_sigma_deg, grasp_error.
     """
     cfg = ctx.config
     rng_lens, rng_scene, rng_noise = (_substream(ss, k) for k in range(3))
@@ -212,58 +247,26 @@ def run_trial(ctx: StudyContext, index: int, ss: np.random.SeedSequence) -> dict
     X_true = scene.X @ pose_to_matrix(g)
     A_cmd = flange_pose(scene, ctx.plan, check_reach=False)
     A_true = A_cmd @ pose_to_matrix(scene.noise.sample(rng_scene, n))
-    B_true = np.linalg.solve(scene.Z, A_true @ X_true)
-    x_true = matrix_to_pose(np.linalg.solve(scene.T_SO_nominal, B_true))
-    # the as-built lens produces the measurements
-    meas = model_ab.evaluate(x_true, check_range=False)
-    sigma = ctx.bench.noise.slope_sigma_urad * 1e-6
-    noise = rng_noise.normal(0.0, sigma, meas.slopes.shape)  # drawn for all poses: fixed CRN layout
-    z = model_ab.pupil.fit(meas.slopes + noise)
-    lit = meas.valid.copy()
-    n_lost = int((~lit).sum())
-    # the estimator uses the nominal model, starting from the commanded poses
-    est = estimate_poses_batch(nominal, z[lit], ctx.plan[lit], max_iter=cfg.max_iter)
-    used = np.flatnonzero(lit)[est.converged]
-    n_nc = int((~est.converged).sum())
-    n_oor = int(est.out_of_range.sum())
-    base = {"n_used": int(used.size), "n_pupil_lost": n_lost, "n_not_converged": n_nc, "n_out_of_range": n_oor,
-            "grasp_error": g.tolist()}
-
-    def with_joint(rec: dict, starts) -> dict:
-        # the joint calibration needs no per-pose estimates: it runs whatever the two-stage outcome
-        if cfg.calibration == "joint":
-            from .joint_trial import joint_trial_record
-
-            param = ctx.lens_parameterisation  # its theta Jacobian is at the plan: the iteration's start
-            rec["joint"] = joint_trial_record(ctx.bench, param, z[lit], A_cmd[lit], scene.T_SO_nominal, starts,
-                                              scene.noise.cov, scene.Z, X_true, param.theta_jacobian[lit])
-        return rec
-
-    nominal_start = [(scene.X, scene.Z)]  # the robot program's grasp and sensor placement
-    if used.size < cfg.min_poses:
-        why = (f"too few usable poses: {used.size} of {n} ({n_lost} pupil lost for the as-built lens, "
-               f"{n_nc} estimates not converged, of which {n_oor} left the bench's pose range)")
-        return with_joint(_fail(why, **base), nominal_start)
-    x_est = est.poses[est.converged]
-    err = x_est - x_true[used]
-    cov = est.cov[est.converged]
-    cov = np.where(np.isfinite(cov), cov, 0.0) + np.where(np.isinf(cov), 100.0, 0.0)  # unobservable: (10 rad)^2
-    cov_B = np.stack([pose_vector_cov_to_right(x, c) for x, c in zip(x_est, cov)])
+    rec = record_session(nominal, model_ab, scene, A_true, A_cmd, X_true, scene.Z, rng_noise)
+    base = {"n_pupil_lost": int((~rec.lit).sum()), "grasp_error": g.tolist()}
+    opts = {"handeye_method": cfg.handeye_method, "max_iter": cfg.max_iter, "min_poses": cfg.min_poses}
     try:
-        with warnings.catch_warnings():  # weak motion is recorded (handeye_observable), not printed per trial
-            warnings.simplefilter("ignore", RuntimeWarning)
-            he = solve_handeye(A_cmd[used], lens_pose_matrix(scene, x_est), cfg.handeye_method,
-                               sigma=scene.noise, cov_B=cov_B, on_degenerate="warn")
+        ts = run(rec.data, "two-stage", **opts)
+        out = {**_calibration_record(ts, rec, X_true, scene.Z), **base}
+    except TooFewPosesError as e:  # the poses still count: used, lost, not converged
+        no_est = [r for r in e.rejected if r.get("code") == "no-estimate"]
+        ts, out = None, _fail(f"too few usable poses: {e}", n_used=len(rec.data.ids) - len(no_est),
+                              n_not_converged=len(no_est),
+                              n_out_of_range=sum("left the bench's pose range" in r["reason"] for r in no_est), **base)
     except LensforgeError as e:
-        return with_joint(_fail(f"hand-eye failed: {e}", **base), nominal_start)
-    rot, trans = transform_error(scene.Z, he.Z)
-    xrot, xtrans = transform_error(X_true, he.X)
-    rec = {"ok": True, "failure": "", "rot_err_deg": rot, "trans_err_mm": trans,
-           "x_rot_err_deg": xrot, "x_trans_err_mm": xtrans,
-           "bias": err.mean(axis=0).tolist(), "bias_std": err.std(axis=0).tolist(),
-           "chi2_dof": float(np.mean(est.chi2[est.converged]) / max(len(nominal.modes) - 6, 1)),
-           "handeye_chi2_dof": float(he.chi2_dof), "handeye_observable": bool(he.observable), **base}
-    return with_joint(rec, [(he.X, he.Z)] + nominal_start)
+        ts, out = None, _fail(f"two-stage calibration failed: {e}", **base)
+    if cfg.calibration == "joint":
+        try:
+            jr = run(rec.data, "joint", tolerances=ctx.joint_prior, start=ts)
+            out["joint"] = {**_calibration_record(jr, rec, X_true, scene.Z), **base}
+        except LensforgeError as e:
+            out["joint"] = _fail(f"joint calibration failed: {e}", **base)
+    return out
 
 
 # ----------------------------------------------------------------------------- the study
@@ -352,17 +355,6 @@ class StudyResult:
         t = self.summary["target"]
         return summarize_errors(calibration_records(self.records, calibration), t["translation_mm"],
                                 t["rotation_deg"], self.summary["percentile"])
-
-
-def resolve_tolerances(tolerances: Tolerances | str | Path | None) -> Tolerances | None:
-    """A Tolerances from a Tolerances, a TOML path, or None (noise only -> None)."""
-    if tolerances is None:
-        return None
-    if isinstance(tolerances, (str, Path)):
-        return load_tolerances(tolerances)
-    if not hasattr(tolerances, "to_dict"):
-        raise ConfigError(f"tolerances: expected a Tolerances or a TOML path, got {type(tolerances).__name__}")
-    return tolerances
 
 
 def calibration_plan(config: StudyConfig, plan_seed: int = 0) -> np.ndarray:
@@ -480,34 +472,63 @@ def result_from_records(records: dict[int, dict], config: dict, chash: str, stor
 
 
 def verify(design_or_lens: LensSpec, tolerances: Tolerances | str | Path | None, n_lenses: int, seed: int,
-           bench: Bench | None = None, n_poses: int = 24, *, workers: int | None = None, scheduler: str | None = None,
-           store: str | PathLike[str] | None = None, resume: bool = False, progress: bool = True,
-           calibration: str = "two-stage", config: StudyConfig | None = None, plan_seed: int = 0,
-           client: Client | None = None, description: str = "as-built lenses", plan: np.ndarray | None = None) -> StudyResult:
+           bench: Bench | None = None, config: StudyConfig | None = None, *, workers: int | None = None,
+           scheduler: str | None = None, store: str | PathLike[str] | None = None, resume: bool = False,
+           progress: bool = True, plan_seed: int = 0, client: Client | None = None,
+           description: str = "as-built lenses", plan: np.ndarray | None = None) -> StudyResult:
     """As-built Monte Carlo of the calibration for ``n_lenses`` as-built lenses.
 
-    design_or_lens: Lens, Design, paper lens name or design JSON path; tolerances:
-    Tolerances, TOML path, or None (noise only; ``Tolerances.zero()`` gives the same
-    numbers); seed: study seed (trial i uses child i of SeedSequence(seed));
-    n_poses: calibration poses per lens (ignored when ``config`` is given);
-    workers: 0 = in this process, N = local Dask cluster of N processes (default:
-    all cores); scheduler: address of an existing Dask scheduler; store: SQLite file
-    to append finished trials to (resume=True continues a killed study; the store
-    refuses a different study); calibration: "two-stage" or "joint" (ignored when
-    ``config`` is given; see StudyConfig); description: the progress bar's label;
-    plan: (n, 6) calibration plan (lens pose vectors, mm and rad, relative to nominal,
-    e.g. a joint design's; n_poses becomes n) instead of the seeded random box.
-    Returns a :class:`StudyResult` (errors in deg and mm).
     A script that starts a local cluster (workers != 0) needs the usual
     ``if __name__ == "__main__":`` guard (worker processes are spawned).
+
+    Parameters
+    ----------
+    design_or_lens : LensSpec
+        Lens, Design, paper lens name or design JSON path.
+    tolerances : Tolerances, str, pathlib.Path or None
+        Tolerances, a TOML path, or None (noise only; ``Tolerances.zero()`` gives the same numbers).
+    n_lenses : int
+        As-built lenses (trials).
+    seed : int
+        Study seed: trial i uses child i of SeedSequence(seed).
+    bench : Bench, optional
+        Default: the design's bench, else the built-in one.
+    config : StudyConfig, optional
+        The study's options: poses per lens, calibration method ("two-stage", or "joint" which
+        also runs the two-stage method on the same data), targets (default ``StudyConfig()``).
+    workers : int, optional
+        0 = in this process, N = local Dask cluster of N processes (default: all cores).
+    scheduler : str, optional
+        Address of an existing Dask scheduler.
+    store : str or os.PathLike, optional
+        SQLite file to append finished trials to.
+    resume : bool
+        Continue a killed study from ``store`` (the store refuses a different study).
+    progress : bool
+        Progress bar on stderr.
+    plan_seed : int
+        Seed of the random calibration-pose box.
+    client : distributed.Client, optional
+        An existing Dask client.
+    description : str
+        The progress bar's label.
+    plan : numpy.ndarray, shape (n, 6), optional
+        Calibration plan (lens pose vectors, mm and rad, relative to nominal, e.g. a joint
+        design's; n_poses becomes n) instead of the seeded random box.
+
+    Returns
+    -------
+    StudyResult
+        Per-trial records, ``rot_err_deg`` and ``trans_err_mm`` (n,) of Z (nan for failed
+        trials), per-trial bias (n, 6) mm and rad, ``ok`` (n,), the summary statistics,
+        the hashed configuration and ``config_hash``.
     """
     if int(n_lenses) != n_lenses or n_lenses < 1:
         raise ConfigError(f"n_lenses: need an integer >= 1, got {n_lenses!r}")
     r = resolve_lens(design_or_lens)
     lens, bench = r.lens, r.bench_or(bench)
-    tol = resolve_tolerances(tolerances)
-    if config is None:
-        config = StudyConfig(n_poses=int(n_poses), calibration=calibration)
+    tol = resolve_tolerances(tolerances)[0]
+    config = config or StudyConfig()
     if plan is not None:
         from dataclasses import replace
 
