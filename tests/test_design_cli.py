@@ -9,7 +9,7 @@ from conftest import run_cli as run
 def test_design_plot_compare_evaluate(tmp_path):
     out = tmp_path / "exports" / "e.json"
     r = run("design", "--model", "extended_polynomial", "--method", "cmaes", "--seed", "1", "--max-evals", "20",
-            "--start", "random", "-o", str(out), "--json")
+            "--start", "random", "--bench", "paper", "-o", str(out), "--json")
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["n_evals"] <= 20 and summary["metrics"]["rank"] == 6
@@ -19,7 +19,8 @@ def test_design_plot_compare_evaluate(tmp_path):
     files = json.loads(r.stdout)["files"]
     kinds = {f.rsplit("/", 1)[-1][len("e_"):-len(".png")] for f in files}
     assert kinds == {"singular_values", "sag", "zernike_response", "footprint", "lenslet_field", "cross_section",
-                     "convergence"}
+                     "bench_layout", "convergence"}
+    assert summary["bench"]["pupil_radius_mm"] == 0.9 and summary["bench"]["expander"] == "none"  # --bench paper
     r = run("compare", str(out), "paper:spherical", "paper:zernike", "--json")
     assert r.returncode == 0, r.stderr
     rows = json.loads(r.stdout)["rows"]

@@ -63,7 +63,7 @@ def test_design_plots_writes_every_png(tmp_path):
     paths = design_plots(lens, tmp_path, stem="ep")
     names = {p.name for p in paths}
     assert names == {f"ep_{k}.png" for k in ("singular_values", "sag", "zernike_response", "footprint",
-                                             "lenslet_field", "cross_section")}
+                                             "lenslet_field", "cross_section", "bench_layout")}
     assert all(p.stat().st_size > 10_000 for p in paths)
 
 

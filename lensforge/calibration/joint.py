@@ -54,9 +54,10 @@ import numpy as np
 from scipy.special import chdtrc
 
 from ..errors import CalibrationError
-from ..optics.pose import adjoint, invert_poses, matrix_to_pose, pose_to_matrix, right_jacobian_inv_so3, rotations
+from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
+from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
 
 __all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain", "chain_jacobians",
@@ -78,17 +79,6 @@ def pose_chain(A, X, Z, a, T_SO_nominal):
     vectors x_i = log(T_SO,nominal^-1 B_i) (n, 6)."""
     B = invert_poses(Z) @ A @ pose_to_matrix(a) @ X
     return B, matrix_to_pose(invert_poses(T_SO_nominal) @ B)
-
-
-def chain_jacobians(B, x, X):
-    """dx_i / d(xi_X, xi_Z, a_i): (n, 6, 6) each (right perturbations; a_i small)."""
-    Minv = np.zeros(x.shape[:-1] + (6, 6))
-    Minv[..., :3, :3] = rotations(x[..., 3:])
-    Minv[..., 3:, 3:] = right_jacobian_inv_so3(x[..., 3:])
-    dX = Minv
-    dZ = -Minv @ adjoint(invert_poses(B))
-    dA = Minv @ adjoint(invert_poses(X))
-    return dX, dZ, dA
 
 
 @dataclass(frozen=True, eq=False)

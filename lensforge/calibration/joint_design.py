@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from .joint import chain_jacobians
+from ..asbuilt.joint_information import pose_information, select_ds, theta_prior, z_sigma
 from ..asbuilt.lens_params import LensParameterisation
 
 __all__ = ["JointDesign", "candidate_information", "predicted_joint_uncertainty", "design_joint_poses",
@@ -59,14 +59,7 @@ def candidate_information(bench, param: LensParameterisation, scene, x, robot_co
     pb.z = res.z
     pb.m = res.z.shape[1]
     S, Jt = pb.jacobians(theta, x, res.uv)
-    dX, dZ, dA = chain_jacobians(B, x, scene.X)
-    Jg = np.concatenate([S @ dX, S @ dZ, Jt], axis=2)
-    Ja = S @ dA
-    P = np.linalg.inv(robot_cov)
-    Haa = np.einsum("nmi,nmj->nij", Ja, Ja) + P
-    Hga = np.einsum("nmi,nmj->nij", Jg, Ja)
-    I = np.einsum("nmi,nmj->nij", Jg, Jg) - Hga @ np.linalg.solve(Haa, np.swapaxes(Hga, 1, 2))
-    I = 0.5 * (I + np.swapaxes(I, 1, 2))
+    I = pose_information(S, Jt, B, x, scene.X, robot_cov)
     I[~res.valid] = 0.0
     return I, res.valid
 
@@ -77,25 +70,6 @@ def _pose_matrices(x):
     return pose_to_matrix(x)
 
 
-def _prior(k: int) -> np.ndarray:
-    P = np.zeros((12 + k, 12 + k))
-    P[12:, 12:] = np.eye(k)
-    return P
-
-
-def _z_sigma(F: np.ndarray) -> dict:
-    C = np.linalg.inv(F)
-    d = np.sqrt(np.diag(C)[6:12])
-    F0 = F[:12, :12]
-    d0 = np.sqrt(np.diag(np.linalg.inv(F0))[6:12])
-    return {"cov": C, "Z_sigma_mm": d[:3].tolist(), "Z_sigma_deg": np.degrees(d[3:]).tolist(),
-            "Z_translation_mm": float(np.sqrt(np.sum(d[:3] ** 2))),
-            "Z_rotation_deg": float(np.degrees(np.sqrt(np.sum(d[3:] ** 2)))),
-            "Z_translation_known_lens_mm": float(np.sqrt(np.sum(d0[:3] ** 2))),
-            "Z_rotation_known_lens_deg": float(np.degrees(np.sqrt(np.sum(d0[3:] ** 2)))),
-            "theta_sigma": np.sqrt(np.diag(C)[12:]).tolist()}
-
-
 def predicted_joint_uncertainty(bench, param: LensParameterisation, scene, x, robot_cov=None,
                                 measurement=None) -> dict:
     """Predicted Z 1-sigma (joint CRLB, theta free) for lens poses x (n, 6) and, for
@@ -103,13 +77,7 @@ def predicted_joint_uncertainty(bench, param: LensParameterisation, scene, x, ro
     as-built lens count for nothing; n_lit says how many do): keys Z_sigma_mm (3), Z_sigma_deg (3), Z_translation_mm /
     Z_rotation_deg (RMS norms), *_known_lens_*, theta_sigma (posterior, prior = 1), cov."""
     I, lit = candidate_information(bench, param, scene, x, robot_cov, measurement)
-    return {**_z_sigma(I.sum(axis=0) + _prior(param.k)), "n_lit": int(lit.sum())}
-
-
-def _ds(F):
-    """-log det of the Z block of F^-1 for a stack of information matrices (..., G, G)."""
-    C = np.linalg.inv(F)
-    return -np.linalg.slogdet(C[..., 6:12, 6:12])[1]
+    return {**z_sigma(I.sum(axis=0) + theta_prior(param.k)), "n_lit": int(lit.sum())}
 
 
 @dataclass(frozen=True)
@@ -123,33 +91,6 @@ class JointDesign:
     chosen: dict
     random: dict | None
     exchanges: int
-
-
-def _select(Ic, k, n, max_passes):
-    """Greedy Ds selection of n out of the candidates' informations Ic, then exchanges."""
-    F0 = _prior(k)
-    eps = 1e-9 * np.trace(Ic.sum(axis=0)) / Ic.shape[0] * np.eye(F0.shape[0])
-    F = F0 + eps
-    chosen: list[int] = []
-    for _ in range(n):
-        j = int(np.argmax(_ds(F[None] + Ic)))
-        chosen.append(j)
-        F = F + Ic[j]
-    swaps = 0
-    for _ in range(max_passes):
-        improved = False
-        for pos in range(n):
-            Fm = F - Ic[chosen[pos]]
-            g = _ds(Fm[None] + Ic)
-            j = int(np.argmax(g))
-            if j != chosen[pos] and g[j] > _ds(F) + 1e-9:
-                chosen[pos] = j
-                F = Fm + Ic[j]
-                swaps += 1
-                improved = True
-        if not improved:
-            break
-    return chosen, F, eps, swaps
 
 
 def _reachable(scene, x) -> bool:
@@ -179,7 +120,7 @@ def design_joint_poses(bench, param: LensParameterisation, scene, n: int, candid
         idx = np.flatnonzero(usable)
         if idx.size < 1:
             raise ConfigError("candidates: none lights the pupil and is reachable; choose poses nearer nominal")
-        chosen, F, eps, sw = _select(I[idx], param.k, n, max_passes)
+        chosen, F, eps, sw = select_ds(I[idx], param.k, n, max_passes)
         swaps += sw
         x = cand[idx[chosen]]
         if not check_reach:
@@ -190,4 +131,4 @@ def design_joint_poses(bench, param: LensParameterisation, scene, n: int, candid
         usable[idx[bad]] = False  # unreachable: drop and choose again
     A = flange_pose(scene, x, check_reach=False)
     rand = predicted_joint_uncertainty(bench, param, scene, compare, robot_cov) if compare is not None else None
-    return JointDesign(x=x, A=A, chosen=_z_sigma(F - eps), random=rand, exchanges=swaps)
+    return JointDesign(x=x, A=A, chosen=z_sigma(F - eps), random=rand, exchanges=swaps)

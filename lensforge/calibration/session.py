@@ -131,7 +131,7 @@ class Plan:
     ids: pose ids ("1".."n"); x: (n, 6) lens poses relative to nominal (mm, rad); A:
     (n, 4, 4) flange poses ^W T_E (mm); joints: (n, 6) IK joint angles (rad);
     predicted: the joint design's predicted (Cramer-Rao) uncertainty
-    (``joint_design._z_sigma`` keys; cov: (12 + k)^2, right perturbations of X, Z, then
+    (``asbuilt.joint_information.z_sigma`` keys; cov: (12 + k)^2, right perturbations of X, Z, then
     theta); z_std: (6,) predicted 1-sigma of Z with the as-built lens theta free (mm,
     rad, {S} axes); z_std_known_lens: the same were the lens known; random_ratio:
     random / designed RMS Z translation error (theta free); tolerances: the tolerance

@@ -25,14 +25,19 @@ ROBOT_HELP = ("robot model: a name of calibration.robot.ROBOTS (kr10_r1100_sixx,
               "(default kr10_r1100_sixx)")
 
 
+def _bench_file(path: str) -> Bench:
+    # 'paper': the paper's bench (Bench.default(): 3.5 mm beam, 0.9 mm pupil) instead of a design's own
+    return Bench.default() if str(path).strip().lower() == "paper" else load_bench(path)
+
+
 def bench_arg(path: str | None) -> Bench | None:
-    """The bench from --bench PATH, or None (the command then uses the design's bench)."""
-    return load_bench(path) if path else None
+    """The bench from --bench PATH ('paper': the paper's), or None (the command then uses the design's bench)."""
+    return _bench_file(path) if path else None
 
 
 def load_bench_arg(path: str | None, resolved: ResolvedLens | None = None) -> Bench:
-    """The bench from --bench PATH, else the one stored in the design file, else the default."""
-    override = load_bench(path) if path else None
+    """The bench from --bench PATH ('paper': the paper's), else the one stored in the design file, else the default."""
+    override = _bench_file(path) if path else None
     return resolved.bench_or(override) if resolved is not None else (override or Bench.default())
 
 

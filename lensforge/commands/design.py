@@ -11,7 +11,7 @@ from rich.console import Console
 
 from ..errors import ConfigError
 from ..fileio import check_output, staged_dir
-from ._common import check_seed, emit_json, info, load_bench_arg
+from ._common import bench_arg, check_seed, emit_json, info, load_bench_arg
 
 
 def _weights(text: str) -> tuple[float, float]:
@@ -29,7 +29,7 @@ def design(
     model: str = typer.Option("zernike", "--model", help="polynomial | extended_polynomial | zernike | conic"),
     method: str = typer.Option("cmaes", "--method", help="optimiser: cmaes (CMA-ES, default) | nelder-mead | pso | ga (the registry in design/optimize.py)"),
     seed: int = typer.Option(0, "--seed", help="random seed (same seed, same design)"),
-    criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min)"),
+    criterion: str = typer.Option("A", "--criterion", help="A (A-optimal: smallest sum of CRLB variances in pose-scale units) | D (D-optimal) | J (the paper's kappa + 1/sigma_min) | DS (self-calibration: the joint calibration's bound on Z over a plan designed with the lens, the printed lens a nuisance; slow: minutes per round)"),
     weights: str = typer.Option("1,1", "--weights", help="w1,w2 of J = w1*kappa + w2/sigma_min"),
     free: Optional[str] = typer.Option(None, "--free", help="which lens parameters the optimiser may change: 'full' (default for zernike: thickness, both base curvatures, Noll 1-8 per surface), 'paper' (the paper's set), 'base' (zernike only: paper set + base curvatures), or a comma list of names such as thickness,front.coefficients[3]; default: full for zernike, paper for the other models"),
     bounds: Optional[str] = typer.Option(None, "--bounds", help="overrides 'name=lo:hi,...', e.g. thickness=4:8"),
@@ -45,25 +45,45 @@ def design(
     require_observable: bool = typer.Option(False, "--require-observable",
                                             help="constraint: every pose DOF observable (predicted 1-sigma within "
                                                  "the bench's pose scale, DESIGN.md)"),
+    plan_mm: float = typer.Option(0.5, "--plan-mm", help="calibration plan's box, translation half-width (mm): the "
+                                  "sensor range and slope bound also hold there (lensforge plan draws from +-0.5 mm); 0 = off"),
+    plan_deg: float = typer.Option(5.0, "--plan-deg", help="calibration plan's box, rotation half-width (deg; plan: +-5)"),
     time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
-    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in)"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML, or 'paper' for the paper's bench (built-in "
+                                        "default: the paper's laser and sensor, with the bench variables designed)"),
+    bench_free: Optional[str] = typer.Option(None, "--bench-free", help="bench variables designed with the lens: 'all' "
+                                             "(expander from design/expanders.py, pupil radius and centre, lens-sensor "
+                                             "distance), 'none', or a comma list of expander,pupil_radius,pupil_center,"
+                                             "distance; default: all without --bench, none with it"),
+    spot_assignment: Optional[str] = typer.Option(None, "--spot-assignment", help="override the bench's "
+                                                  "sensor.spot_assignment: tracking | fixed (lenslet-bound windows) | none"),
+    lens_evals: Optional[int] = typer.Option(None, "--lens-evals", help="co-design: evaluations of the first, lens-only "
+                                             "step (default 300); --max-evals sets the joint step's (default 160)"),
     robust: Optional[Path] = typer.Option(None, "--robust", help="tolerance TOML: minimise the expected criterion over as-built draws (tolerance-robust design)"),
     robust_samples: int = typer.Option(8, "--robust-samples", help="as-built draws per candidate (with --robust)"),
     robust_seed: int = typer.Option(0, "--robust-seed", help="seed of the as-built draws, common to all candidates (with --robust)"),
     robust_statistic: str = typer.Option("mean", "--robust-statistic", help="mean | max | mean+std of the criterion over the draws (with --robust)"),
+    selfcal_tolerances: str = typer.Option("default", "--selfcal-tolerances", help="criterion DS: tolerance TOML of the printed lens ('default': the package's)"),
+    selfcal_rounds: int = typer.Option(2, "--selfcal-rounds", help="criterion DS: plan step + lens step rounds"),
+    selfcal_poses: int = typer.Option(24, "--selfcal-poses", help="criterion DS: poses of the plan designed with the lens"),
     out: Path = typer.Option(Path("exports/design.json"), "-o", "--out", help="design JSON to write"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
 ) -> None:
     """Optimise a freeform lens and write its design file."""
+    from ..design.bench_vars import bench_label, bench_summary
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
     from ..design.design_file import save_design
     from ..design.optimize import optimize_design
+    from ..design.bench_vars import BenchVariables
     from ..design.robust import RobustSpec
     from ..asbuilt.tolerances import load_tolerances
 
     b = load_bench_arg(bench)
+    if spot_assignment is not None:
+        b = b.replace(sensor={"spot_assignment": spot_assignment.strip().lower()})
+    bvars = BenchVariables.parse(bench_free or ("none" if bench is not None or robust is not None else "all"))
     spec = None
     if robust is not None:
 
@@ -71,27 +91,46 @@ def design(
                           statistic=robust_statistic)
     check_seed(seed)
     check_seed(robust_seed, "--robust-seed")
+    selfcal = None
+    if criterion.strip().upper() == "DS":
+        from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE
+        from ..design.selfcal import SelfCalSpec
+
+        selfcal = SelfCalSpec(load_tolerances(DEFAULT_TOLERANCES_FILE if selfcal_tolerances == "default"
+                                              else selfcal_tolerances), n_poses=selfcal_poses,
+                              plan_mm=plan_mm, plan_rad=math.radians(plan_deg))
     check_output(out, folder=False, option="-o/--out")
     cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
-                       range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable)
+                       range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable,
+                       plan_mm=plan_mm, plan_rad=math.radians(plan_deg))
     d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
                         free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
                         n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
-                        progress=not no_progress and not json_out, robust=spec)
+                        progress=not no_progress and not json_out, robust=spec, bench_vars=bvars,
+                        lens_evals=lens_evals, selfcal=selfcal, selfcal_rounds=selfcal_rounds)
     path = save_design(d, out)
     if json_out:
         emit_json({"schema_version": 1, "design": str(path), "model": d.model, "method": d.method, "seed": d.seed,
                    "criterion": d.criterion, "n_evals": d.n_evals, "wall_time_s": d.wall_time_s,
-                   "parameters": d.parameters, "metrics": d.metrics,
+                   "parameters": d.parameters, "metrics": d.metrics, "bench": bench_summary(d.bench),
                    "robust": None if d.robust is None else
                    {k: d.robust[k] for k in ("n_samples", "seed", "statistic", "cost", "mean", "nominal", "n_failed")}})
     else:
         info(f"wrote {path}  ({d.n_evals} evaluations, {d.wall_time_s:.1f} s)")
+        info(f"bench: {bench_label(d.bench)}" + ("  (co-designed)" if bvars.free else ""))
+        sc = d.settings.get("selfcal")
+        if sc:
+            s0, s1 = sc["start_summary"], sc["summary"]
+            info(f"self-calibration bound on Z over its {sc['n_poses']}-pose plan: "
+                 f"{s1['Z_translation_mm'] * 1e3:.1f} um / {s1['Z_rotation_deg'] * 1e3:.2f} mdeg with the printed lens "
+                 f"free ({s1['Z_translation_known_lens_mm'] * 1e3:.1f} um / {s1['Z_rotation_known_lens_deg'] * 1e3:.2f} "
+                 f"mdeg known); the A-optimal start: {s0['Z_translation_mm'] * 1e3:.1f} um / "
+                 f"{s0['Z_rotation_deg'] * 1e3:.2f} mdeg")
         if d.robust is not None:
             r = d.robust
             info(f"robust {d.criterion}: {r['statistic']} {r['cost']:.5g} over {r['n_samples']} as-built draws "
                  f"(seed {r['seed']}, {r['n_failed']} unmeasurable); nominal {r['nominal']:.5g}")
-        rows = compare_rows([d], b, cons)
+        rows = compare_rows([d], d.bench, cons)
         Console(stderr=True, width=200).print(format_table(rows))
         for note in feasibility_notes(rows):
             info(f"infeasible: {note}")
@@ -124,7 +163,8 @@ def plot(
 
 def compare(
     items: List[str] = typer.Argument(..., help="design JSON files and/or paper:NAME (spherical, polynomial, extended_polynomial, zernike)"),
-    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: built-in default)"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML or 'paper' for all lenses (default: each "
+                                        "design on its own bench, paper lenses on the built-in default)"),
     range_mm: float = typer.Option(1.0, "--range-mm", help="working range for the feasibility column (mm)"),
     range_deg: float = typer.Option(1.0, "--range-deg", help="working range for the feasibility column (deg)"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable rows on stdout"),
@@ -135,7 +175,7 @@ def compare(
     from ..design.compare import compare_rows, feasibility_notes, format_table
     from ..design.constraints import Constraints
 
-    b = load_bench_arg(bench)
+    b = bench_arg(bench)  # None: each design on its own bench
     rows = compare_rows(items, b, Constraints(range_mm=range_mm, range_rad=math.radians(range_deg)))
     if json_out:
         emit_json({"schema_version": 1, "rows": rows})

@@ -22,6 +22,7 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
     Each row carries ``sensor_range`` at the nominal pose (ok, max_slope_mrad, lenslets_out, ...);
     a lens out of the sensor's range gets null metrics (the sensor cannot measure it).
     """
+    from ..design.bench_vars import bench_label, bench_summary
     from ..optics.lens import resolve_lens
     from ..optics.sensitivity import metrics
     from ..optics.shack_hartmann import ForwardModel
@@ -34,7 +35,8 @@ def evaluate_lenses(names: list[str], bench_path: str | None = None) -> list[dic
         sr = ForwardModel(bench, lens).sensor_range()  # nominal pose; metrics need it in range
         m = metrics(bench, lens) if sr.ok else None
         rows.append({"lens": name, "label": r.label, "description": lens.name,
-                     **(m.to_dict() if m else _NO_METRICS), "sensor_range": sr.to_dict()})
+                     **(m.to_dict() if m else _NO_METRICS), "sensor_range": sr.to_dict(),
+                     "bench": bench_summary(bench), "bench_label": bench_label(bench)})
     return rows
 
 
@@ -51,10 +53,10 @@ def metrics_table(rows: list[dict], title: str = "Sensitivity metrics (scaled, n
         return "inf" if v is None else format(v, spec)
 
     t = Table(title=title, caption=UNOBSERVABLE_NOTE)
-    for col in ["lens", "rank", "kappa", "sigma_min", "J"] + crlb_columns() + ["sensor range"]:
+    for col in ["lens", "bench", "rank", "kappa", "sigma_min", "J"] + crlb_columns() + ["sensor range"]:
         t.add_column(col, justify="right" if col != "lens" else "left")
     for r in rows:
-        t.add_row(r.get("label", r["lens"]), fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
+        t.add_row(r.get("label", r["lens"]), r.get("bench_label", "-"), fmt(r["rank"], "d"), fmt(r["kappa"]), fmt(r["sigma_min"]), fmt(r["J"]),
                   *crlb_cells(r["crlb_std"], unobservable=r.get("unobservable") or ()), _range_text(r.get("sensor_range")))
     return t
 
@@ -72,4 +74,4 @@ def evaluate(
     if json_out:
         emit_json({"schema_version": 1, "lenses": rows})
     else:
-        Console(stderr=True, width=160).print(metrics_table(rows))
+        Console(stderr=True, width=200).print(metrics_table(rows))

@@ -10,8 +10,7 @@ import typer
 
 from ..errors import ConfigError
 from ..fileio import check_output, dumps_json, staged_dir, write_atomic
-from ..optics.bench import load_bench
-from ._common import MAX_TRIALS, check_seed, emit_json, info
+from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, info
 
 
 def _tolerances(path):
@@ -111,7 +110,7 @@ def study_cmd(
     _check_sizes(seed, lenses, workers)
     check_job(design, bench, poses, calibration, workers, "--pose-plan" if plan is not None else "--poses", plan)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
-    b = load_bench(bench) if bench else None
+    b = bench_arg(str(bench)) if bench else None
     check_output(out, folder=True, need_mb=5 + lenses * 2e-3)
     res = verify(design, tol, lenses, seed, b, config=cfg, workers=workers, scheduler=scheduler,
                  store=out / "store.sqlite", resume=resume, progress=not (no_progress or json_out), plan=plan)
@@ -191,7 +190,7 @@ def budget_cmd(
     _check_sizes(seed, lenses, workers)
     check_job(design, bench, poses, calibration, workers)
     cfg = StudyConfig(n_poses=poses, target_mm=target_mm, target_deg=target_deg, calibration=calibration)
-    b = load_bench(bench) if bench else None
+    b = bench_arg(str(bench)) if bench else None
     check_output(out, folder=True, need_mb=10)
     with dask_client(workers, scheduler) as cl:
         kw = dict(config=cfg, client=cl, workers=0, progress=not (no_progress or json_out))

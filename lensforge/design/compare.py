@@ -22,6 +22,7 @@ from ..optics.lens import Lens, resolve_lens
 from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
+from .bench_vars import bench_label, bench_summary
 from .constraints import Constraints, check_design
 from .design_file import Design, load_design, metrics_dict
 
@@ -53,47 +54,53 @@ def resolve_entry(arg) -> CompareEntry:
 
 
 def compare_rows(entries, bench: Bench | None = None, constraints: Constraints | None = None) -> list[dict]:
-    """One dict per entry with stable keys (see module docstring); all on ``bench``."""
-    bench = bench or Bench.default()
+    """One dict per entry with stable keys (see module docstring); all on ``bench``, or with
+    bench None each design file on its own bench (a paper lens on the default bench). Every
+    row carries the bench it was evaluated on (``bench``: ``bench_vars.bench_summary``)."""
     cons = constraints or Constraints()
     rows = []
     for e in map(resolve_entry, entries):
-        row = {"label": e.label, "lens": e.lens.name}
-        try:
-            m = metrics(bench, e.lens)
-            md = metrics_dict(m)
-            row.update({k: md[k] for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
-            row["crlb_std"] = md["crlb_std"]
-            row["unobservable"] = md.get("unobservable", [])  # DESIGN.md's statistical rule (Metrics.observability)
-            row["error"] = None
-        except LensforgeError as err:
-            row.update({k: None for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
-            row["crlb_std"] = None
-            row["unobservable"] = list(DOF_NAMES)
-            row["error"] = str(err)
-        try:
-            row["sensor_range"] = ForwardModel(bench, e.lens).sensor_range().to_dict()
-            fixed = bench.replace(sensor={"spot_assignment": "fixed"})
-            row["sensor_range_fixed"] = ForwardModel(fixed, e.lens).sensor_range().to_dict()
-        except LensforgeError:
-            row["sensor_range"] = row["sensor_range_fixed"] = None
-        try:
-            f = check_design(bench, e.lens, cons)
-            row["feasible"] = f.ok
-            row["violations"] = [v.constraint for v in f.violations]
-            row["violation_messages"] = [v.message for v in f.violations]
-        except LensforgeError as err:
-            row["feasible"] = False
-            row["violations"] = ["error"]
-            row["violation_messages"] = [str(err)]
-        d = e.design
-        row["method"] = d.method if d else None
-        row["seed"] = d.seed if d else None
-        row["criterion"] = d.criterion if d else None
-        row["n_evals"] = d.n_evals if d else None
-        row["wall_time_s"] = d.wall_time_s if d else None
-        rows.append(row)
+        own = bench or (e.design.bench if e.design is not None else Bench.default())
+        rows.append(_row(e, own, cons))
     return rows
+
+
+def _row(e: CompareEntry, bench: Bench, cons: Constraints) -> dict:
+    row = {"label": e.label, "lens": e.lens.name, "bench": bench_summary(bench), "bench_label": bench_label(bench)}
+    try:
+        m = metrics(bench, e.lens)
+        md = metrics_dict(m)
+        row.update({k: md[k] for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
+        row["crlb_std"] = md["crlb_std"]
+        row["unobservable"] = md.get("unobservable", [])  # DESIGN.md's statistical rule (Metrics.observability)
+        row["error"] = None
+    except LensforgeError as err:
+        row.update({k: None for k in ("rank", "kappa", "sigma_min", "J", "D", "A")})
+        row["crlb_std"] = None
+        row["unobservable"] = list(DOF_NAMES)
+        row["error"] = str(err)
+    try:
+        row["sensor_range"] = ForwardModel(bench, e.lens).sensor_range().to_dict()
+        fixed = bench.replace(sensor={"spot_assignment": "fixed"})
+        row["sensor_range_fixed"] = ForwardModel(fixed, e.lens).sensor_range().to_dict()
+    except LensforgeError:
+        row["sensor_range"] = row["sensor_range_fixed"] = None
+    try:
+        f = check_design(bench, e.lens, cons)
+        row["feasible"] = f.ok
+        row["violations"] = [v.constraint for v in f.violations]
+        row["violation_messages"] = [v.message for v in f.violations]
+    except LensforgeError as err:
+        row["feasible"] = False
+        row["violations"] = ["error"]
+        row["violation_messages"] = [str(err)]
+    d = e.design
+    row["method"] = d.method if d else None
+    row["seed"] = d.seed if d else None
+    row["criterion"] = d.criterion if d else None
+    row["n_evals"] = d.n_evals if d else None
+    row["wall_time_s"] = d.wall_time_s if d else None
+    return row
 
 
 def _fmt(v, spec=".4g"):
@@ -120,16 +127,16 @@ def format_table(rows: list[dict]):
     """A rich Table of the rows (print it with a stderr Console)."""
     from rich.table import Table
 
-    t = Table(title="Lens comparison on one bench (metrics of the scaled, whitened S; CRLB 1-sigma)",
+    t = Table(title="Lens comparison, each on the bench shown (metrics of the scaled, whitened S; CRLB 1-sigma)",
               caption=UNOBSERVABLE_NOTE)
-    cols = (["lens", "rank", "kappa", "sigma_min", "J", "D", "A"] + crlb_columns("")
+    cols = (["lens", "bench", "rank", "kappa", "sigma_min", "J", "D", "A"] + crlb_columns("")
             + ["max slope (mrad)", "measurable", "feasible", "evals", "time (s)"])
     for c in cols:
         t.add_column(c, justify="left" if c == "lens" else "right")
     for r in rows:
         lost = r["rank"] is not None and r["rank"] < len(DOF_NAMES)  # D and A hold a rank penalty, not a value
         t.add_row(
-            r["label"], _fmt(r["rank"], "d"), _fmt(r["kappa"]), _fmt(r["sigma_min"]), _fmt(r["J"]),
+            r["label"], r.get("bench_label", "-"), _fmt(r["rank"], "d"), _fmt(r["kappa"]), _fmt(r["sigma_min"]), _fmt(r["J"]),
             fmt_bound(r["D"], lost, ".4g"), fmt_bound(r["A"], lost, ".4g"),
             *crlb_cells(r.get("crlb_std"), unobservable=r.get("unobservable", ())),
             _fmt((r.get("sensor_range") or {}).get("max_slope_mrad"), ".3g"), _measurable(r),

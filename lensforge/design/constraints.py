@@ -13,6 +13,12 @@
 * sensor range: over the same poses every pupil lenslet's spot stays assignable by
   the sensor (``sensor.spot_assignment``, see ``optics/sensor_range.py``) with a margin:
   the largest fraction of the assignment limit used is at most 1 - ``range_margin``.
+* sensor model: over the same poses every pupil lenslet's slope stays within the range
+  where the sensor model is validated (``sensor.validated_slope_mrad``; 0 = unbounded).
+* calibration plan (``plan_mm`` / ``plan_rad`` > 0): the sensor-range and sensor-model
+  checks also hold at the extreme poses of the calibration plan's box (``plan_poses``:
+  +-plan on each DOF alone and the four (rx, ry) corners) wherever the pupil is lit there
+  (``lensforge plan`` only chooses lit poses).
 * observability (opt-in, ``observable=True``): every pose DOF observable at the
   nominal pose by DESIGN.md's statistical rule (``optics.sensitivity.observability``:
   not numerically null and predicted 1-sigma within the bench's pose scale).
@@ -36,7 +42,7 @@ from ..optics.sensitivity import metrics_from_S, sensitivity_from_model
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, TIR, trace_rays
 
-__all__ = ["Constraints", "Violation", "Feasibility", "working_poses", "check_design", "require_feasible"]
+__all__ = ["Constraints", "Violation", "Feasibility", "working_poses", "plan_poses", "check_design", "require_feasible"]
 
 
 @dataclass(frozen=True)
@@ -54,7 +60,8 @@ class Constraints:
     kept free over the working range (ASSUMPTION 0.2: room for as-built deviations and
     poses between the checked ones). observable: require every pose DOF observable at the
     nominal pose (the statistical rule; off by default, the criteria already
-    penalise lost rank).
+    penalise lost rank). plan_mm / plan_rad: half-width of the calibration plan's box of
+    lens poses (``lensforge plan`` draws from +-0.5 mm, +-5 deg); 0 = no plan check.
     """
 
     min_center_mm: float = 1.0
@@ -65,6 +72,8 @@ class Constraints:
     max_slope_deg: float = 50.0
     range_margin: float = 0.2
     observable: bool = False
+    plan_mm: float = 0.0
+    plan_rad: float = 0.0
 
     def __post_init__(self):
         if not (isinstance(self.max_slope_deg, (int, float)) and 0 < self.max_slope_deg <= 90):
@@ -72,7 +81,7 @@ class Constraints:
         if isinstance(self.range_margin, bool) or not isinstance(self.range_margin, (int, float)) \
                 or not 0 <= self.range_margin < 1:
             raise ConfigError(f"constraints.range_margin: must be in [0, 1), got {self.range_margin!r}")
-        for f in ("min_center_mm", "min_edge_mm", "range_mm", "range_rad"):
+        for f in ("min_center_mm", "min_edge_mm", "range_mm", "range_rad", "plan_mm", "plan_rad"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ConfigError(f"constraints.{f}: must be a finite number >= 0, got {v!r}")
@@ -96,13 +105,16 @@ class Constraints:
         d = {"min_center_mm": self.min_center_mm, "min_edge_mm": self.min_edge_mm,
              "range_mm": self.range_mm, "range_rad": self.range_rad, "tir": self.tir,
              "range_margin": self.range_margin}
+        if self.plan_mm > 0 or self.plan_rad > 0:
+            d.update(plan_mm=self.plan_mm, plan_rad=self.plan_rad)
         return {**d, "observable": True} if self.observable else d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Constraints":
         if not isinstance(d, dict):
             raise ConfigError("constraints: expected an object")
-        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir", "range_margin", "observable"}
+        allowed = {"min_center_mm", "min_edge_mm", "range_mm", "range_rad", "tir", "range_margin", "observable",
+                   "plan_mm", "plan_rad"}
         unknown = set(d) - allowed
         if unknown:
             raise ConfigError(f"constraints: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
@@ -156,6 +168,23 @@ def working_poses(c: Constraints) -> np.ndarray:
     poses = np.unique(np.array(rows), axis=0)
     order = np.argsort(np.abs(poses).sum(axis=1), kind="stable")  # nominal first
     return poses[order]
+
+
+def plan_poses(c: Constraints) -> np.ndarray:
+    """(Q, 6) extreme poses of the calibration plan's box: +-plan on each DOF alone and the
+    four (rx, ry) corners; (0, 6) without a plan box."""
+    if not (c.plan_mm > 0 or c.plan_rad > 0):
+        return np.zeros((0, 6))
+    a, b = c.plan_mm, c.plan_rad
+    rows = []
+    for i, v in enumerate((a, a, a, b, b, b)):
+        for s in (1.0, -1.0):
+            e = np.zeros(6)
+            e[i] = s * v
+            rows.append(e)
+    for srx, sry in itertools.product((1.0, -1.0), repeat=2):
+        rows.append(np.array([0.0, 0.0, 0.0, srx * b, sry * b, 0.0]))
+    return np.unique(np.array(rows), axis=0)
 
 
 def _beam_grid(bench: Bench, n: int = 9) -> np.ndarray:
@@ -258,18 +287,9 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                             f"at {where}: {why}; reduce surface power/tilt or shrink the working range "
                             f"(constraints.range_mm/range_rad; CLI --range-mm/--range-deg)"))
         pen += 1.0 + not_ok + short
-    elif bench.sensor.spot_assignment != "none":
-        worst_use = np.max(use, axis=1)
-        allowed = 1.0 - c.range_margin
-        if np.any(worst_use > allowed):
-            k = int(np.argmax(worst_use))
-            where = "the nominal pose" if k == 0 else f"working-range pose {np.round(P[k], 4).tolist()} (mm, rad)"
-            vs.append(Violation("sensor_range", float(worst_use[k]), allowed,
-                                f"spots use up to {worst_use[k]:.3g} x the sensor's '{bench.sensor.spot_assignment}' "
-                                f"spot-assignment limit (allowed {allowed:.3g} with constraints.range_margin = "
-                                f"{c.range_margin}) at {where}; weaken the surface power, move the lens closer "
-                                "(placement.distance_mm) or shrink the working range"))
-            pen += float(worst_use[k] - allowed) + float(np.mean(np.clip(worst_use - allowed, 0, None)))
+    else:
+        pen += _range_checks(bench, c, model, P, use, res.slopes if len(P) == 1 else
+                             np.concatenate([res.slopes, res2.slopes]), uv0, vs)
     if c.observable and not vs:
         S, z0, _ = sensitivity_from_model(model, raise_invalid=False)
         ob = None if S is None else metrics_from_S(S, model.noise_cov, bench, z0).observability
@@ -281,6 +301,46 @@ def check_design(bench: Bench, lens: Lens, c: Constraints, poses: np.ndarray | N
                                 "constraints.observable"))
             pen += 1.0 + float(np.sum(np.log10(excess[~ob.observable])))
     return Feasibility(not vs, tuple(vs), pen, t_min, t_c, model, uv0)
+
+
+def _range_checks(bench: Bench, c: Constraints, model: ForwardModel, P, use, slopes, uv0, vs: list) -> float:
+    """Sensor range (with margin) and sensor-model slope bound over the working poses P and
+    the lit plan poses; appends violations to vs and returns their penalty."""
+    pen = 0.0
+    Q = plan_poses(c)
+    labels = ["working-range"] * len(P)
+    if len(Q):
+        warm = None if uv0 is None else np.broadcast_to(uv0, (len(Q),) + uv0.shape)
+        rq = model.evaluate(Q, uv0=warm, check_range=False)
+        lit = np.all(rq.status == OK, axis=1) & np.all(rq.irradiance >= rq.threshold, axis=1)
+        use = np.concatenate([use, rq.range_use[lit]])
+        slopes = np.concatenate([slopes, rq.slopes[lit]])
+        P = np.concatenate([P, Q[lit]])
+        labels += ["calibration-plan"] * int(lit.sum())
+    if bench.sensor.spot_assignment != "none":
+        worst_use = np.max(use, axis=1)
+        allowed = 1.0 - c.range_margin
+        if np.any(worst_use > allowed):
+            k = int(np.argmax(worst_use))
+            where = "the nominal pose" if k == 0 else f"{labels[k]} pose {np.round(P[k], 4).tolist()} (mm, rad)"
+            vs.append(Violation("sensor_range", float(worst_use[k]), allowed,
+                                f"spots use up to {worst_use[k]:.3g} x the sensor's '{bench.sensor.spot_assignment}' "
+                                f"spot-assignment limit (allowed {allowed:.3g} with constraints.range_margin = "
+                                f"{c.range_margin}) at {where}; weaken the surface power, move the lens closer "
+                                "(placement.distance_mm) or shrink the working range"))
+            pen += float(worst_use[k] - allowed) + float(np.mean(np.clip(worst_use - allowed, 0, None)))
+    bound = bench.sensor.validated_slope_mrad * 1e-3
+    if bound > 0:
+        worst = np.max(np.abs(slopes), axis=(1, 2))
+        if np.any(worst > bound):
+            k = int(np.argmax(worst))
+            where = "the nominal pose" if k == 0 else f"{labels[k]} pose {np.round(P[k], 4).tolist()} (mm, rad)"
+            vs.append(Violation("sensor_model", float(worst[k] * 1e3), bench.sensor.validated_slope_mrad,
+                                f"lenslet slopes reach {worst[k] * 1e3:.4g} mrad at {where}, beyond the "
+                                f"{bench.sensor.validated_slope_mrad:g} mrad where the sensor model is validated "
+                                "(sensor.validated_slope_mrad); weaken the surface power or shrink the pupil"))
+            pen += float(worst[k] / bound - 1.0) + float(np.mean(np.clip(worst / bound - 1.0, 0, None)))
+    return pen
 
 
 def require_feasible(f: Feasibility, what: str = "design") -> None:

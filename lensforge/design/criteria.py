@@ -20,12 +20,19 @@ import numpy as np
 from ..errors import ConfigError
 from ..optics.sensitivity import RANK_PENALTY, Metrics, paper_cost
 
-__all__ = ["CRITERIA", "criterion_value", "check_criterion", "criteria_values"]
+__all__ = ["CRITERIA", "PLAN_CRITERIA", "criterion_value", "check_criterion", "criteria_values"]
 
 CRITERIA = {
     "J": "paper cost w1*kappa + w2/sigma_min of the scaled whitened S (+ rank penalty)",
     "D": "D-optimal: -log det of the Fisher information of the scaled S (unit-independent)",
     "A": "A-optimal: trace of the Cramer-Rao covariance in pose-scale units (1 mm, 1 deg)",
+}
+
+# criteria that need more than the single-pose metrics (a calibration plan and a tolerance model):
+# evaluated by the design problem (``optimize.DesignProblem``), not by ``criterion_value``
+PLAN_CRITERIA = {
+    "DS": "self-calibration: log det Cov(Z) of the joint calibration over a plan, the as-built lens a "
+          "nuisance with the tolerance prior (selfcal.py; plan and lens designed in turn)",
 }
 
 _SV_FLOOR = 1e-15  # relative floor on singular values keeps D and A finite
@@ -34,8 +41,9 @@ _SV_FLOOR = 1e-15  # relative floor on singular values keeps D and A finite
 def check_criterion(name: str) -> str:
     """Canonical criterion name ('J', 'D' or 'A'); ConfigError otherwise."""
     key = str(name).strip().upper()
-    if key not in CRITERIA:
-        raise ConfigError(f"criterion: unknown {name!r}; use one of {', '.join(CRITERIA)} ({'; '.join(f'{k}: {v}' for k, v in CRITERIA.items())})")
+    if key not in CRITERIA and key not in PLAN_CRITERIA:
+        every = {**CRITERIA, **PLAN_CRITERIA}
+        raise ConfigError(f"criterion: unknown {name!r}; use one of {', '.join(every)} ({'; '.join(f'{k}: {v}' for k, v in every.items())})")
     return key
 
 

@@ -38,10 +38,13 @@ from ..progress import Bar, progress_bar
 from .constraints import Constraints, check_design, require_feasible, working_poses
 from .criteria import check_criterion, criterion_value
 from .design_file import Design, metrics_dict
+from .bench_vars import BenchVariables, CoDesignParameterisation
 from .parameterisation import Parameterisation, parameterisation
 from .robust import RobustSpec, robust_value
+from .selfcal import SelfCalSpec, plan_for, selfcal_value
 
-__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE"]
+__all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
+           "BenchVariables", "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
@@ -74,8 +77,16 @@ class DesignProblem:
 
     def __init__(self, bench: Bench, par: Parameterisation, criterion: str = "J", weights=(1.0, 1.0),
                  constraints: Constraints | None = None, max_evals: int = 1000, time_limit_s: float | None = None,
-                 progress: Bar | None = None, robust: RobustSpec | None = None, label: str = ""):
+                 progress: Bar | None = None, robust: RobustSpec | None = None, label: str = "",
+                 search_quadrature: int | None = None, selfcal: SelfCalSpec | None = None):
         self.bench = bench
+        self.selfcal = selfcal
+        # the bench the search evaluates on: with search_quadrature, a coarser sub-aperture rule
+        # (co-design: 1 point per lenslet is ~4x faster and moves the CRLB by ~1 %); the returned
+        # design is always checked and scored on ``bench``
+        self.search_quadrature = search_quadrature
+        self.search_bench = bench if search_quadrature is None else bench.replace(
+            sensor={"subaperture_quadrature": int(search_quadrature)})
         self.robust = robust
         self.par = par
         self.criterion = check_criterion(criterion)
@@ -105,21 +116,31 @@ class DesignProblem:
         """
         try:
             lens = self.par.to_lens(p)
+            bench = self.bench_of(p, search=True)
         except LensforgeError as e:
             from .constraints import Feasibility, Violation
 
             return INFEASIBLE * 10, Feasibility(False, (Violation("geometry", np.nan, 0.0, str(e)),), 1e3), None
-        f = check_design(self.bench, lens, self.constraints, self.poses, fast=True)
+        f = check_design(bench, lens, self.constraints, self.poses, fast=True)
         if not f.ok:
             return INFEASIBLE * (1.0 + f.violation), f, None
         S, z0, _ = sensitivity_from_model(f.model, raise_invalid=False)
         if S is None:
             return INFEASIBLE * 2.0, f, None
-        m = metrics_from_S(S, f.model.noise_cov, self.bench, z0, self.weights)
-        value = criterion_value(self.criterion, m, self.weights)
+        m = metrics_from_S(S, f.model.noise_cov, bench, z0, self.weights)
+        if self.criterion == "DS":
+            value = selfcal_value(bench, lens, self.selfcal)[0] if not nominal_only else criterion_value("A", m)
+        else:
+            value = criterion_value(self.criterion, m, self.weights)
         if self.robust is not None and not nominal_only:
-            value = robust_value(self.bench, lens, self.robust, self.criterion, self.weights, nominal=value).cost
+            value = robust_value(bench, lens, self.robust, self.criterion, self.weights, nominal=value).cost
         return value, f, m
+
+    def bench_of(self, p, search: bool = False) -> Bench:
+        """The bench of parameter vector p (the design's bench unless bench variables are free);
+        search: with the search's sub-aperture rule."""
+        base = self.search_bench if search else self.bench
+        return self.par.to_bench(p, base) if isinstance(self.par, CoDesignParameterisation) else base
 
     def __call__(self, u) -> float:
         if self.n_evals >= self.max_evals:
@@ -185,15 +206,15 @@ class DesignProblem:
         )
 
 
-def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
-    """Feasible start u0 and a word on where it came from."""
+def _start_point(prob: DesignProblem, start, rng, start_lens: Lens | None = None) -> tuple[np.ndarray, str]:
+    """Feasible start u0 and a word on where it came from (start_lens: the lens 'paper' starts from)."""
     par = prob.par
     if isinstance(start, str):
         key = start.lower()
         if key not in ("paper", "template", "random"):
             raise ConfigError(f"start: expected 'paper', 'random' or a parameter vector, got {start!r}")
         if key in ("paper", "template"):
-            p = par.from_lens(par.template)
+            p = par.from_lens(start_lens) if start_lens is not None else par.from_lens(par.template)
             if par.in_bounds(p) and prob.evaluate_p(p, nominal_only=True)[0] < INFEASIBLE:
                 return par.to_unit(p), "template"
         return prob.random_feasible_start(rng), "random"
@@ -204,7 +225,7 @@ def _start_point(prob: DesignProblem, start, rng) -> tuple[np.ndarray, str]:
         raise ConfigError(f"start: vector lies outside the bounds {par.bounds_dict()}")
     cost, f, _ = prob.evaluate_p(p, nominal_only=True)
     if cost >= INFEASIBLE:
-        require_feasible(check_design(prob.bench, par.to_lens(p), prob.constraints), "start design")
+        require_feasible(check_design(prob.bench_of(p), par.to_lens(p), prob.constraints), "start design")
     return par.to_unit(p), "given"
 
 
@@ -355,6 +376,101 @@ DEFAULT_MAX_EVALS = {name: o.default_max_evals for name, o in OPTIMISERS.items()
 _ALIASES = {a: o.name for o in OPTIMISERS.values() for a in o.aliases}
 
 
+# co-design budgets: the lens step on the given bench, then lens and bench jointly (``optimize_design``)
+CODESIGN_LENS_EVALS = 300
+CODESIGN_EVALS = 160
+
+
+def bench_scan(par: CoDesignParameterisation, lens: Lens, constraints: Constraints, criterion: str = "A",
+               weights=(1.0, 1.0), quadrature: int | None = 1, radii_mm=(1.5, 2.0, 2.5, 3.0, 3.5)) -> list[dict]:
+    """The lens on each catalogue expander x pupil radius (other bench variables at the base
+    bench): one row per bench with feasible, the criterion value (inf if infeasible) and the
+    bench. Radii beyond the expanded beam's 1/e^2 radius are skipped (the pupil cannot be lit)."""
+    base = par.base
+    rows = []
+    exps = par.expanders or ("",)
+    for i, name in enumerate(exps):
+        p = par.from_lens(lens, base)
+        names = list(par.names)
+        if "bench.expander" in names:
+            p[names.index("bench.expander")] = float(i)
+        for r in radii_mm:
+            if "bench.pupil_radius_mm" in names:
+                j = names.index("bench.pupil_radius_mm")
+                if not par.lo[j] <= r <= par.hi[j]:
+                    continue
+                p[j] = r
+            try:
+                b = par.to_bench(p, base)
+            except LensforgeError:
+                continue
+            if b.sensor.pupil_radius_mm >= 0.5 * b.laser.beam_diameter_mm:
+                continue
+            sb = b if quadrature is None else b.replace(sensor={"subaperture_quadrature": int(quadrature)})
+            f = check_design(sb, lens, constraints, fast=True)
+            value = np.inf
+            if f.ok:
+                S, z0, _ = sensitivity_from_model(f.model, raise_invalid=False)
+                if S is not None:
+                    value = criterion_value(criterion, metrics_from_S(S, f.model.noise_cov, sb, z0, weights), weights)
+            rows.append({"expander": name or "none", "pupil_radius_mm": float(b.sensor.pupil_radius_mm),
+                         "feasible": bool(np.isfinite(value)), "value": float(value) if np.isfinite(value) else None,
+                         "bench": b})
+            if "bench.pupil_radius_mm" not in names:
+                break
+    for r in rows:
+        if r["value"] is None:
+            r["value"] = np.inf
+    return rows
+
+
+def _selfcal_design(bench, model, method, seed, weights, free, bounds, constraints, max_evals, start, progress,
+                    template, bench_vars, lens_evals, search_quadrature, spec, rounds) -> Design:
+    """criterion DS: the A-optimal design (and bench), then rounds of plan step + lens step."""
+    import dataclasses
+
+    if spec is None:
+        raise ConfigError("criterion DS: needs a SelfCalSpec (the tolerance model of the printed lens); "
+                          "CLI: --selfcal-tolerances")
+    if int(rounds) < 1:
+        raise ConfigError(f"selfcal_rounds: need at least 1, got {rounds!r}")
+    codesign = bench_vars is not None and bool(bench_vars.free)
+    d = optimize_design(bench, model=model, method=method, seed=seed, criterion="A", weights=weights, free=free,
+                        bounds=bounds, constraints=constraints, start=start, progress=progress, template=template,
+                        bench_vars=bench_vars, lens_evals=lens_evals, search_quadrature=search_quadrature,
+                        max_evals=None if codesign else lens_evals)
+    q = 1 if search_quadrature is None else int(search_quadrature)  # the DS lens steps search on 1 point/lenslet
+    first_value, first_summary = None, None
+    log = []
+    lens_par = parameterisation(model, free=free, bounds=bounds, template=template)
+    for r in range(int(rounds)):
+        poses = plan_for(d.bench, d.lens, spec)
+        sp = spec.with_poses(poses)
+        value, summary = selfcal_value(d.bench, d.lens, sp)
+        if first_value is None:
+            first_value, first_summary = value, summary
+        p0 = np.clip([d.parameters[n] for n in lens_par.names], lens_par.lo, lens_par.hi)
+        nxt = optimize_design(d.bench, model=model, method=method, seed=seed + r + 1, criterion="DS",
+                              weights=weights, free=free, bounds=bounds, constraints=constraints,
+                              max_evals=max_evals or 40, start=p0, progress=progress, template=template,
+                              search_quadrature=q, selfcal=sp, sigma0=0.03)
+        v_new, s_new = selfcal_value(nxt.bench, nxt.lens, sp)
+        log.append({"round": r + 1, "plan_value": value, "lens_value": v_new,
+                    "Z_translation_mm": s_new["Z_translation_mm"], "Z_rotation_deg": s_new["Z_rotation_deg"],
+                    "Z_translation_known_lens_mm": s_new["Z_translation_known_lens_mm"],
+                    "Z_rotation_known_lens_deg": s_new["Z_rotation_known_lens_deg"], "n_evals": nxt.n_evals})
+        if v_new < value:
+            d = nxt
+    plan = plan_for(d.bench, d.lens, spec)
+    v_final, s_final = selfcal_value(d.bench, d.lens, spec.with_poses(plan))
+    settings = {**d.settings, "selfcal": {"rounds": log, "plan": plan.tolist(), "value": v_final,
+                                          "start_value": first_value, "summary": s_final,
+                                          "start_summary": first_summary, "n_poses": spec.n_poses,
+                                          "plan_mm": spec.plan_mm, "plan_rad": spec.plan_rad}}
+    return dataclasses.replace(d, criterion="DS", settings=settings,
+                               lens=d.lens.replace(name=d.lens.name.replace(", A,", ", DS,")))
+
+
 def check_method(method: str) -> str:
     key = str(method).strip().lower()
     key = _ALIASES.get(key, key)
@@ -373,8 +489,28 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
                     start: str | np.ndarray = "paper",
                     n_starts: int = 1, particles: int = 30, population: int | None = None, sigma0: float = 0.1,
                     ftol: float | None = None, time_limit_s: float | None = None, progress: bool = True,
-                    template: Lens | None = None, robust: RobustSpec | None = None) -> Design:
+                    template: Lens | None = None, robust: RobustSpec | None = None,
+                    bench_vars: BenchVariables | None = None, lens_evals: int | None = None,
+                    search_quadrature: int | None = None, start_lens: Lens | None = None,
+                    start_bench: Bench | None = None, selfcal: SelfCalSpec | None = None,
+                    selfcal_rounds: int = 2) -> Design:
     """Optimise a lens of ``model`` on ``bench`` and return the feasible :class:`Design`.
+
+    Co-design (``bench_vars`` with free variables, ``bench_vars.BenchVariables``): the bench
+    around the lens is designed too. Three steps: (1) the lens alone on ``bench``
+    (``lens_evals`` evaluations, default CODESIGN_LENS_EVALS); (2) a scan of the expander
+    catalogue and pupil radii (``bench_scan``) with that lens, the best feasible bench by
+    the criterion; (3) lens and bench variables jointly from there (``max_evals``, default
+    CODESIGN_EVALS). Steps 1-3 search with ``search_quadrature`` points per lenslet side
+    (default 1 when co-designing); the returned design is checked and scored on the full
+    bench. The design's ``bench`` is the co-designed bench, its ``settings.codesign`` says
+    how it was reached.
+
+    Self-calibration criterion (``criterion='DS'``, ``selfcal`` a :class:`SelfCalSpec` with the
+    tolerance model): first the A-optimal design (with its bench, if ``bench_vars`` are free),
+    then ``selfcal_rounds`` rounds of a plan step (``selfcal.plan_for``: the Ds-optimal plan for
+    the current lens) and a lens step (the lens's DS over that plan, ``max_evals`` evaluations,
+    the bench kept); ``settings.selfcal`` holds the plan and the bound per round.
 
     Parameters
     ----------
@@ -387,7 +523,7 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     seed : int
         Same seed, same result.
     criterion : str
-        'J' (paper), 'D' or 'A'.
+        'J' (paper), 'D', 'A', or 'DS' (self-calibration, needs ``selfcal``).
     weights : sequence of float
         (w1, w2) of J.
     free, bounds : str, sequence or dict, optional
@@ -419,6 +555,20 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
         Minimise the statistic of the criterion over as-built draws (common random
         numbers) instead of the nominal criterion; the design's ``robust`` record holds
         the spec and the returned lens's robust cost.
+    bench_vars : BenchVariables, optional
+        Bench variables designed with the lens (co-design, see above); None or none free:
+        the bench is kept.
+    lens_evals : int, optional
+        Co-design: evaluations of the lens-only first step (default CODESIGN_LENS_EVALS).
+    search_quadrature : int, optional
+        Sub-aperture points per lenslet side during the search (default: the bench's; 1
+        when co-designing); the result is always scored on the bench's own rule.
+    start_lens, start_bench : Lens, Bench, optional
+        Where a 'paper'/'template' start begins (internal to the co-design steps).
+    selfcal : SelfCalSpec, optional
+        Criterion 'DS': the tolerance model, plan box and robot of the self-calibration bound.
+    selfcal_rounds : int
+        Criterion 'DS': plan step + lens step rounds.
 
     Returns
     -------
@@ -445,6 +595,34 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     if len(weights) != 2 or not all(np.isfinite(weights)) or min(weights) < 0 or max(weights) <= 0:
         raise ConfigError(f"weights: expected two finite numbers >= 0, not both 0, got {weights!r}")
     par = parameterisation(model, free=free, bounds=bounds, template=template)
+    if check_criterion(criterion) == "DS" and (selfcal is None or selfcal.poses is None):
+        return _selfcal_design(bench, model, method, seed, weights, free, bounds, constraints, max_evals, start,
+                               progress, template, bench_vars, lens_evals, search_quadrature, selfcal, selfcal_rounds)
+    codesign = None
+    if bench_vars is not None and bench_vars.free:
+        if robust is not None:
+            raise ConfigError("robust: a tolerance-robust design keeps its bench; use --bench-free none with --robust")
+        q = 1 if search_quadrature is None else int(search_quadrature)
+        n1 = CODESIGN_LENS_EVALS if lens_evals is None else int(lens_evals)
+        first = optimize_design(bench, model=model, method=method, seed=seed, criterion=criterion, weights=weights,
+                                free=free, bounds=bounds, constraints=constraints, max_evals=n1, start=start,
+                                n_starts=n_starts, particles=particles, population=population, sigma0=sigma0,
+                                ftol=ftol, time_limit_s=time_limit_s, progress=progress, template=template,
+                                search_quadrature=q)
+        par = CoDesignParameterisation.build(par, bench_vars, bench)
+        scan = bench_scan(par, first.lens, constraints or Constraints(), criterion=check_criterion(criterion),
+                          weights=weights, quadrature=q)
+        best = min((r for r in scan if r["feasible"]), key=lambda r: r["value"], default=None)
+        start_lens, start_bench = first.lens, (best["bench"] if best is not None else bench)
+        search_quadrature = q
+        codesign = {"lens_evals": first.n_evals, "lens_wall_time_s": first.wall_time_s,
+                    "lens_step_metrics": {k: first.metrics.get(k) for k in ("crlb_std", "criterion_value")},
+                    "scan": [{k: r[k] for k in ("expander", "pupil_radius_mm", "feasible", "value")} for r in scan],
+                    "variables": bench_vars.to_dict(), "search_quadrature": q}
+        if max_evals is None:
+            max_evals = CODESIGN_EVALS
+        if start == "paper":
+            start = "template"
     evals = DEFAULT_MAX_EVALS[meth] if max_evals is None else int(max_evals)
     if evals < par.n + 2:
         raise ConfigError(f"max_evals: {evals} is too small for {par.n} free parameters; use at least {par.n + 2}")
@@ -459,8 +637,15 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     label = f"{meth} {par.model} ({crit}{', robust' if robust is not None else ''})"
     t0 = time.perf_counter()
     with progress_bar(evals, label, enabled=progress) as bar:
-        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, bar, robust, label)
-        u0, start_kind = _start_point(prob, start, rng)
+        prob = DesignProblem(bench, par, crit, weights, constraints, evals, time_limit_s, bar, robust, label,
+                             search_quadrature, selfcal)
+        if start_bench is not None and isinstance(par, CoDesignParameterisation):
+            u0, start_kind = _start_point(prob, par.from_lens(start_lens or par.template, start_bench)
+                                          if start in ("template", "paper") else start, rng)
+            if start_kind == "given":
+                start_kind = "lens step + bench scan"
+        else:
+            u0, start_kind = _start_point(prob, start, rng, start_lens)
         p_start = par.from_unit(u0)
         start_cost = prob(u0)  # counted, so the start is always a candidate
         opts = {"particles": particles, "population": population, "sigma0": sigma0, "n_starts": int(n_starts)}
@@ -479,21 +664,29 @@ def optimize_design(bench: Bench | None = None, model: str = "zernike", method: 
     for cost, _, u in sorted(prob.candidates, key=lambda c: (c[0], c[1]))[:_N_CANDIDATES]:
         p_best = par.from_unit(u)
         lens = par.to_lens(p_best).replace(
-            name=f"lensforge {par.model} ({meth}, {crit}{', robust' if robust is not None else ''}, seed {seed})")
-        feas = check_design(bench, lens, constraints, prob.poses, fast=False)
+            name=f"lensforge {par.model} ({meth}, {crit}{', robust' if robust is not None else ''}"
+                 f"{', co-designed bench' if codesign else ''}, seed {seed})")
+        bench_best = prob.bench_of(p_best)
+        feas = check_design(bench_best, lens, constraints, prob.poses, fast=False)
         if feas.ok:
             break
         first_fail = first_fail or feas
     else:
         require_feasible(first_fail, f"optimised {par.model} design")
+    bench = bench_best
     S, z0, _ = sensitivity_from_model(feas.model)
     m = metrics_from_S(S, feas.model.noise_cov, bench, z0, weights)
-    nominal_value = criterion_value(crit, m, weights)
+    nominal_value = selfcal_value(bench, lens, selfcal)[0] if crit == "DS" else criterion_value(crit, m, weights)
     robust_record = None
     if robust is not None:
         rv = robust_value(bench, lens, robust, crit, weights, nominal=nominal_value)
         robust_record = {**robust.to_dict(), "criterion": crit, **rv.to_dict()}
     settings = {"max_evals": evals, "n_starts": int(n_starts), "ftol": ftol, "time_limit_s": time_limit_s, **info}
+    if search_quadrature is not None:
+        settings["search_quadrature"] = int(search_quadrature)
+    if codesign is not None:
+        settings["codesign"] = codesign
+        wall += codesign["lens_wall_time_s"]
     return Design(
         lens=lens, bench=bench, model=par.model, free=par.names,
         parameters={n: float(v) for n, v in zip(par.names, p_best)}, bounds=par.bounds_dict(),

@@ -32,10 +32,16 @@ class Laser:
 
     Thorlabs CPS532-C2: 532 nm, collimated, ~3.5 mm beam (taken as the 1/e^2 diameter).
     offset_mm: beam centre (x, y) in {S}; slope: beam direction (dx/dz, dy/dz).
+    beam_diameter_mm is the beam that reaches the lens, i.e. after the beam expander, if any:
+    expander names it (a ``design.expanders.EXPANDERS`` entry, "" for none) and
+    expander_magnification is its magnification, so the laser's own beam is
+    beam_diameter_mm / expander_magnification.
     """
 
     wavelength_nm: float = 532.0
     beam_diameter_mm: float = 3.5
+    expander: str = ""
+    expander_magnification: float = 1.0
     offset_mm: tuple = (0.0, 0.0)
     slope: tuple = (0.0, 0.0)
 
@@ -87,6 +93,12 @@ class Sensor:
     window, against the factory reference; issue 21); camera_offset_px: the camera pixel
     grid's offset from the lenslet array along x and y (ASSUMPTION 1/3 px: not known; 0
     puts the central row's and column's reference spots on pixel corners, a placement tie).
+    validated_slope_mrad: largest lenslet slope component at which the sensor model (what a
+    lenslet reports, ``centroid.py``) is trusted; designs keep every pupil lenslet within it
+    over their working range and calibration plan. ASSUMPTION 200 mrad (a spot then walks
+    f s = 1 mm, ~7 pitches, on the camera; neither the lenslet's off-axis aberrations nor
+    the tracking software have been checked that far): a placeholder for the sensor-physics
+    model's validated range, to be tightened there. 0 = no bound.
     """
 
     pitch_mm: float = 0.150
@@ -103,6 +115,7 @@ class Sensor:
     centroid_threshold: float = 0.0
     crosstalk: str = "none"
     camera_offset_px: float = 1.0 / 3.0
+    validated_slope_mrad: float = 200.0
 
 
 @dataclass(frozen=True)
@@ -204,12 +217,12 @@ _POSITIVE = {
     "laser.wavelength_nm", "laser.beam_diameter_mm", "placement.distance_mm", "sensor.pitch_mm",
     "sensor.aperture_mm", "sensor.pupil_radius_mm", "sensor.zernike_order", "pose_limits.translation_mm",
     "pose_limits.rotation_rad", "rank_rtol", "fd_steps", "pose_scales", "sensor.lenslet_focal_mm",
-    "sensor.pixel_mm", "sensor.subaperture_quadrature",
+    "sensor.pixel_mm", "sensor.subaperture_quadrature", "laser.expander_magnification",
 }
 SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
 CROSSTALK_MODELS = ("none", "neighbours")
 _NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
-           "sensor.centroid_threshold"}
+           "sensor.centroid_threshold", "sensor.validated_slope_mrad"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
 
 
@@ -231,6 +244,10 @@ def _validate(obj, prefix: str = "") -> None:
         if f.name == "crosstalk":
             if v not in CROSSTALK_MODELS:
                 raise ConfigError(f"{name}: must be one of {list(CROSSTALK_MODELS)}, got {v!r}")
+            continue
+        if f.name == "expander":
+            if not isinstance(v, str):
+                raise ConfigError(f"{name}: expected a beam expander name (text, \"\" for none), got {v!r}")
             continue
         if f.name in _LENGTHS:
             if not isinstance(v, (tuple, list)) or len(v) != _LENGTHS[f.name]:

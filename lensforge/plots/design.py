@@ -247,6 +247,105 @@ def plot_cross_section(lens):
     return fig
 
 
+def plot_bench_layout(bench, lens, range_mm: float = 1.0, range_rad: float = np.radians(1.0)):
+    """Figure: the bench around the lens. Left, side view (y-z of {S}): laser and beam expander
+    (schematic, not to scale along z), the expanded beam, the lens section at its nominal
+    distance, traced beam rays to the sensor, the WFS aperture and the Zernike pupil. Right,
+    the sensor face (x-y of {S}): aperture, Zernike pupil, and the beam's 1/e^2 footprint at
+    the nominal pose and over the working range (axis poses at +-range)."""
+    from matplotlib.patches import Rectangle
+
+    from ..optics.trace import OK, trace_rays
+
+    fig = new_figure(figsize=(13, 5.5), layout="constrained")
+    ax = fig.add_subplot(1, 2, 1)
+    d = bench.placement.distance_mm
+    w = 0.5 * bench.laser.beam_diameter_mm
+    mag = bench.laser.expander_magnification
+    w0 = w / mag
+    half_ap = 0.5 * bench.sensor.aperture_mm
+    cy, r = bench.sensor.pupil_center_mm[1], bench.sensor.pupil_radius_mm
+    R = 0.5 * lens.edge_diameter
+    z_lens = -d
+    z_exp = z_lens - max(0.6 * d, 12.0)
+    z_laser = z_exp - max(0.5 * d, 10.0)
+    # laser and expander (schematic)
+    ax.add_patch(Rectangle((z_laser - 8, -1.5 * w0), 8, 3 * w0, fc="0.3", ec="k"))
+    ax.text(z_laser - 4, 1.7 * w0, f"laser\n{2 * w0:.3g} mm beam\n{bench.laser.wavelength_nm:g} nm", ha="center",
+            va="bottom", fontsize=7)
+    name = bench.laser.expander or "no expander"
+    if mag != 1.0:
+        for zz, hh in ((z_exp - 3, 1.3 * w0), (z_exp + 3, 1.15 * w)):
+            ax.plot([zz, zz], [-hh, hh], color="tab:blue", lw=2)
+        ax.text(z_exp, 1.25 * w, f"{name}\n{mag:g}x Galilean", ha="center", va="bottom", fontsize=7, color="tab:blue")
+        zb = [z_laser, z_exp - 3, z_exp + 3, z_lens - 0.5 * lens.thickness]
+        wb = [w0, w0, w, w]
+    else:
+        ax.text(z_exp, 1.25 * w, name, ha="center", va="bottom", fontsize=7, color="tab:blue")
+        zb, wb = [z_laser, z_lens - 0.5 * lens.thickness], [w0, w0]
+    ax.fill_between(zb, [-v for v in wb], wb, color="tab:green", alpha=0.25, lw=0, label="beam (1/e^2)")
+    # lens section (y-z) at its nominal placement
+    s = np.linspace(-R, R, 401)
+    zf = z_lens - 0.5 * lens.thickness + lens.front.sag(0 * s, s)
+    zk = z_lens + 0.5 * lens.thickness + lens.back.sag(0 * s, s)
+    ax.fill(np.concatenate([zf, zk[::-1]]), np.concatenate([s, s[::-1]]), color="lightsteelblue", ec="k", lw=0.8,
+            label=f"lens (d = {d:.3g} mm)")
+    # rays from the lens to the sensor: a fan across the beam in y
+    v = np.linspace(-0.98 * w, 0.98 * w, 15)
+    uv = np.stack([0 * v, v], axis=1)
+    tr = trace_rays(bench, lens, np.zeros((1, 6)), uv)
+    for k in range(len(v)):
+        if tr.status[0, k] != OK:
+            continue
+        y1 = tr.xy[0, k, 1]
+        # drawn straight from the beam height at the back vertex (a sketch: the trace gives only the landing)
+        ax.plot([z_lens + 0.5 * lens.thickness, 0.0], [v[k], y1], color="tab:green", lw=0.5, alpha=0.8)
+    # sensor and pupil
+    ax.plot([0, 0], [-half_ap, half_ap], color="k", lw=3, label=f"WFS aperture {2 * half_ap:.3g} mm")
+    ax.plot([0.4, 0.4], [cy - r, cy + r], color="tab:red", lw=3, label=f"Zernike pupil r = {r:.3g} mm")
+    ax.set_xlabel("z in {S} (mm); laser and expander schematic, not to scale")
+    ax.set_ylabel("y in {S} (mm)")
+    ax.set_ylim(-max(R, half_ap) * 1.3, max(R, half_ap) * 1.45)
+    ax.set_title("side view: laser, expander, lens, sensor", fontsize=9)
+    ax.legend(fontsize=7, loc="lower left")
+    ax.grid(True, alpha=0.2)
+    # sensor face
+    ax = fig.add_subplot(1, 2, 2)
+    sq = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]]) * half_ap
+    ax.plot(sq[:, 0], sq[:, 1], "k-", lw=1.5, label="WFS aperture")
+    phi = np.linspace(0, 2 * np.pi, 181)
+    cx = bench.sensor.pupil_center_mm[0]
+    ax.plot(cx + r * np.cos(phi), cy + r * np.sin(phi), color="tab:red", lw=2, label="Zernike pupil")
+    ring = np.stack([w * np.cos(phi[:-1]), w * np.sin(phi[:-1])], axis=1)
+    poses = [np.zeros(6)]
+    for i, sc in enumerate((range_mm, range_mm, range_mm, range_rad, range_rad, range_rad)):
+        for sg in (1.0, -1.0):
+            e = np.zeros(6)
+            e[i] = sg * sc
+            poses.append(e)
+    tr = trace_rays(bench, lens, np.array(poses), ring)
+    for k in range(len(poses)):
+        ok = tr.status[k] == OK
+        if not ok.any():
+            continue
+        xy = tr.xy[k][ok]
+        kw = dict(color="tab:green", lw=1.8, label="beam 1/e^2 at nominal") if k == 0 else \
+            dict(color="tab:green", lw=0.6, alpha=0.5, label="over the working range" if k == 1 else None)
+        ax.plot(np.append(xy[:, 0], xy[0, 0]), np.append(xy[:, 1], xy[0, 1]), **kw)
+    ax.set_aspect("equal")
+    ax.set_xlim(-1.1 * half_ap, 1.1 * half_ap)
+    ax.set_ylim(-1.1 * half_ap, 1.25 * half_ap)
+    ax.set_xlabel("x in {S} (mm)")
+    ax.set_ylabel("y in {S} (mm)")
+    ax.set_title(f"sensor face: beam footprint (+-{range_mm:g} mm, +-{np.degrees(range_rad):.3g} deg) and pupil",
+                 fontsize=9)
+    ax.legend(fontsize=7, loc="upper right")
+    ax.grid(True, alpha=0.2)
+    fig.suptitle(f"bench layout: {name}, {2 * w:.3g} mm beam, pupil r {r:.3g} mm, lens at {d:.3g} mm "
+                 f"({bench.sensor.spot_assignment} spot assignment)")
+    return fig
+
+
 # --------------------------------------------------------------------------- design and calibration
 
 def plot_convergence(history, title: str = "Design convergence"):
@@ -319,6 +418,7 @@ def design_plots(design: "Design | Lens", out_dir: str | PathLike[str], stem: st
     paths.append(save_figure(plot_beam_footprint(lens, lit, range_mm, range_rad), out / f"{stem}_footprint.png"))
     paths.append(save_figure(plot_lenslet_field(bench, lens), out / f"{stem}_lenslet_field.png"))
     paths.append(save_figure(plot_cross_section(lens), out / f"{stem}_cross_section.png"))
+    paths.append(save_figure(plot_bench_layout(bench, lens, range_mm, range_rad), out / f"{stem}_bench_layout.png"))
     if history is not None:
         title = f"{stem}: {getattr(design, 'method', '')} on criterion {getattr(design, 'criterion', '')}"
         paths.append(save_figure(plot_convergence(history, title), out / f"{stem}_convergence.png"))
