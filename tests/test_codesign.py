@@ -173,7 +173,7 @@ def test_selfcal_information_equals_the_calibration_plans():
     tol = Tolerances()
     spec = SelfCalSpec(tol, poses=x)
     scene = paper_scene(bench.placement.distance_mm)
-    assert np.allclose(default_grasp(), scene.X) and np.allclose(spec.robot_cov, RobotNoise().cov, rtol=1e-12)
+    assert np.allclose(default_grasp(), scene.X) and np.allclose(spec.robot_cov, RobotNoise().cov, rtol=1e-12, atol=0)
     value, s = selfcal_value(bench, lens, spec)
     param = parameterise(bench, lens, tol, x, keep_threshold=0.0)
     ref = predicted_joint_uncertainty(bench, param, scene, x)

@@ -43,7 +43,8 @@ from ..optics.shack_hartmann import ForwardModel
 
 __all__ = ["SelfCalSpec", "default_grasp", "joint_information", "selfcal_value", "plan_for", "plan_candidates"]
 
-_RP_TO_SIGMA = 2 * math.sqrt(2 / math.pi) + 3 * math.sqrt(3 - 8 / math.pi)  # ISO 9283 RP / sigma = 3.616
+# ISO 9283 RP / sigma = 2 sqrt(2/pi) + 3 sqrt(3 - 8/pi) = 3.616, rounded as calibration.robot.RobotNoise's default
+_RP_TO_SIGMA = 3.616
 
 
 def default_grasp() -> np.ndarray:
