@@ -60,7 +60,7 @@ from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
 
-__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain", "chain_jacobians",
+__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain",
            "simulate_joint_data"]
 
 # relinearise the iteration Jacobians when a step is not at least this much smaller than the one before

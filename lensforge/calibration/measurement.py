@@ -38,7 +38,8 @@ import numpy as np
 from ..errors import CalibrationError, ConfigError
 from ..optics.pose import pose_to_matrix
 from ..optics.shack_hartmann import ForwardModel
-from .joint import JointProblem, chain_jacobians, pose_chain
+from ..asbuilt.joint_information import chain_jacobians
+from .joint import JointProblem, pose_chain
 from . import thorlabs
 
 __all__ = ["Measurement", "MEASUREMENTS", "measurement", "slope_inputs", "plan_jacobians", "spot_bench", "joint_crlb", "canonical_ids",

@@ -433,6 +433,12 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     wfs_header : str
         "error" (a WFS header value that contradicts the bench is a ConfigError naming both),
         "file" (the file's values win) or "bench" (they are ignored); see ``match_session``.
+    pose_pattern : str, optional
+        A regular expression whose first group is the pose id in a measurement file's name
+        (default: its last integer), for a folder or glob of per-pose instrument files.
+    reference_pose : str, optional
+        The pose id of the user reference the measurements are relative to (default: the
+        files' own ``reference_pose``, if any).
 
     Returns
     -------

@@ -43,7 +43,7 @@ def check_job(design, bench_path, poses: int, calibration: str, workers: int | N
 
     check_poses_count(poses, option)
     r = resolve_lens(design)
-    bench = r.bench_or(load_bench(bench_path) if bench_path else None)
+    bench = r.bench_or(bench_arg(bench_path))
     n_lenslets = math.pi * bench.sensor.pupil_radius_mm ** 2 / bench.sensor.pitch_mm ** 2
     order = bench.sensor.zernike_order
     procs = max(1, os.cpu_count() or 1) if workers is None else max(1, workers)

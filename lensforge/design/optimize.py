@@ -44,7 +44,7 @@ from .robust import RobustSpec, robust_value
 from .selfcal import SelfCalSpec, plan_for, selfcal_value
 
 __all__ = ["METHODS", "OPTIMISERS", "Optimiser", "optimize_design", "DesignProblem", "DEFAULT_MAX_EVALS", "INFEASIBLE",
-           "BenchVariables", "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
+           "bench_scan", "CODESIGN_LENS_EVALS", "CODESIGN_EVALS"]
 
 INFEASIBLE = 1e30  # cost floor of an infeasible lens (above any feasible criterion value)
 _MAX_START_TRIES = 400
