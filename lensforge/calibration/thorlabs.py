@@ -62,6 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from ..fileio import MAX_TABLE_BYTES, read_bounded
 from ..optics.zernike import nm_to_noll, noll_to_osa
 
 __all__ = ["read_text_any", "read_export", "export_text", "read_export_folder", "pose_id_from_name",
@@ -85,9 +86,10 @@ TILT_ZERO_PX = 1e-9  # mean spot deviation (px) treated as exactly zero
 
 def read_text_any(path: Path, what: str) -> str:
     """Text of a file written on Windows or elsewhere: UTF-8 (BOM allowed), else cp1252,
-    else latin-1; CRLF/CR line ends become LF."""
+    else latin-1; CRLF/CR line ends become LF. Bounded (``fileio.read_bounded``): /dev/zero or a
+    huge file is refused, never read whole."""
     try:
-        raw = Path(path).read_bytes()
+        raw = read_bounded(path, what, MAX_TABLE_BYTES)
     except FileNotFoundError:
         raise ConfigError(f"{what} {path}: not found") from None
     except OSError as e:
