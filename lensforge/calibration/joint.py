@@ -22,7 +22,9 @@ linear in the number of poses), and the same elimination gives the covariance of
 covariance instead (R + S_i G Sigma_A G^T S_i^T) would need an m x m factorisation per
 pose and iteration and is exact only to first order.
 
-Solver: Levenberg-Marquardt on the block-arrow normal equations, started from a
+Solver: Levenberg-Marquardt on the block-arrow normal equations with lensforge's one
+step policy (``trust_region``: a radius on the step in conditional 1-sigma units, Marquardt's
+scaling sqrt(diag H), changed by the gain ratio), started from a
 two-stage solution (per-pose estimates + hand-eye) and theta = 0, all unknowns free
 from the first step (theta steps capped at 3 prior sigmas; holding theta for a first
 step moved the poses onto the nominal lens's biased fit, from which theta wandered to
@@ -59,6 +61,7 @@ from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
+from .trust_region import damped_step, gain_ratio, next_radius
 
 __all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain",
            "simulate_joint_data"]
@@ -72,6 +75,7 @@ _NUMERIC_FLOOR = 1e-9  # whitened misfit per dof treated as zero (a remaining st
 _THETA_TRUST = 3.0
 # a step shorter than this (1-sigma units) keeps the Jacobians fresh for the covariance
 _FRESH_STEP = 0.3
+_MIN_RADIUS = 1e-12  # no descent within this trust radius (1-sigma units): a minimum, to rounding
 
 
 def pose_chain(A, X, Z, a, T_SO_nominal):
@@ -336,7 +340,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         S, Jt = pb.jacobians(theta, x, uv)
     fresh = theta_jacobian0 is None  # S, Jt are the covariance's: at the current state (or within 0.3 sigma)
     dof = n * pb.m - 12 - (0 if theta_prior else k)
-    lam = 1e-6
+    radius, lam = None, 0.0  # trust radius, conditional 1-sigma units (None: the next Gauss-Newton step's length)
     converged = False
     it = 0
     prev_dec = np.inf
@@ -359,19 +363,33 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             # the iteration Jacobians' fixed point is off the minimum by (J^T J)^-1 dJ^T r
             # when the residuals r are not zero: finish with fresh ones
             (S, Jt), fresh = pb.jacobians(theta, x, uv), True
-            prev_dec = np.inf
+            prev_dec, radius = np.inf, None
             continue
         accepted = False
-        while lam < 1e12:
-            Sg, rhs, Hinv = _schur(Hgg, bg, Haa, Hga, ba, lam)
-            dg = -_solve(Sg, rhs)
-            da = -np.einsum("nij,nj->ni", Hinv, ba + np.einsum("ngi,g->ni", Hga, dg))
+        Dg2, Da2 = np.diag(Hgg), np.einsum("nii->ni", Haa)  # Marquardt's scaling D^2 = diag H
+
+        def solve(lam_):
+            Sg_, rhs_, Hinv_ = _schur(Hgg, bg, Haa, Hga, ba, lam_)
+            dg_ = -_solve(Sg_, rhs_)
+            da_ = -np.einsum("nij,nj->ni", Hinv_, ba + np.einsum("ngi,g->ni", Hga, dg_))
+            return (dg_, da_), float(np.sqrt(dg_**2 @ Dg2 + np.sum(da_**2 * Da2)))
+
+        while True:
+            if radius is None:  # the first step after a (re)linearisation: Gauss-Newton, its length the radius
+                (dg, da), length = solve(0.0)
+                radius, lam = length, 0.0
+            else:
+                (dg, da), length, lam = damped_step(solve, radius, lam)
             big = np.max(np.abs(dg[12:]), initial=0.0) / _THETA_TRUST
             if big > 1.0:  # theta's trust region: far outside its prior h is not near-linear
-                dg, da = dg / big, da / big
+                dg, da, length = dg / big, da / big, length / big
+            gd = bg @ dg + np.sum(ba * da)
+            dHd = dg @ Hgg @ dg + 2.0 * np.einsum("g,ngi,ni->", dg, Hga, da) + np.einsum("ni,nij,nj->", da, Haa, da)
+            pred = -(2.0 * gd + dHd)  # trust_region.predicted_decrease, blockwise
             Xn, Zn = X @ pose_to_matrix(dg[:6]), Z @ pose_to_matrix(dg[6:12])
             thn, an = theta + dg[12:], a + da
             rn, litn, Bn, xn, uvn, zmn = pb.residuals(Xn, Zn, thn, an, uv0=uv)
+            dropped = False
             if not litn.all() and litn.sum() >= 3 and (pb.cost(rn[litn], an[litn], thn)
                                                         <= pb.cost(r[litn], a[litn], theta)):
                 # a step that descends on the poses it keeps lit but darkens others: those sit at
@@ -386,19 +404,24 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 n = int(keep.sum())
                 dof = n * pb.m - 12 - (0 if theta_prior else k)
                 cost, litn = pb.cost(r, a, theta), np.ones(n, bool)
-                fresh, prev_dec = False, np.inf
+                fresh, prev_dec, dropped = False, np.inf, True
             cn = pb.cost(rn, an, thn) if litn.all() else np.inf
-            if cn <= cost:
+            acc = cn <= cost
+            # the shared step policy (trust_region); after dropping poses the model's prediction
+            # was for the larger problem, so the radius stays
+            rho = 0.5 if dropped else float(gain_ratio(cost - cn, pred))
+            radius = float(next_radius(radius, length, rho, acc))
+            if acc:
                 accepted = True
                 X, Z, theta, a, r, B, x, uv, zm = Xn, Zn, thn, an, rn, Bn, xn, uvn, zmn
                 cost = cn
-                lam = max(lam / 10, 1e-12)
                 break
-            lam *= 10
+            if radius <= _MIN_RADIUS or dropped:  # dropped: the normal equations are the larger problem's
+                break
         if not accepted:
             if not fresh:  # the iteration Jacobians limit the descent: relinearise here and go on
                 (S, Jt), fresh = pb.jacobians(theta, x, uv), True
-                prev_dec, lam = np.inf, 1e-6
+                prev_dec, radius = np.inf, None
                 continue
             converged = True  # no descent left with exact Jacobians: a minimum (to the residuals' accuracy)
             break
@@ -407,7 +430,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         fresh = fresh and dec < _FRESH_STEP ** 2 * scale
         if not fresh and dec > refresh_ratio ** 2 * prev_dec:  # slow contraction: the Jacobians are stale
             (S, Jt), fresh = pb.jacobians(theta, x, uv), True
-            prev_dec = np.inf
+            prev_dec, radius = np.inf, None  # a new linearisation starts with its Gauss-Newton step
         else:
             prev_dec = dec
     if not fresh:  # max_iter reached: the covariance needs Jacobians at the estimate

@@ -40,6 +40,7 @@ from ..optics.pose import pose_to_matrix
 from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.joint_information import chain_jacobians
 from .joint import JointProblem, pose_chain
+from .trust_region import eigen_step, gain_ratio, next_radius, predicted_decrease
 from . import thorlabs
 
 __all__ = ["Measurement", "MEASUREMENTS", "measurement", "slope_inputs", "plan_jacobians", "spot_bench", "joint_crlb", "canonical_ids",
@@ -259,8 +260,10 @@ def referenced_calibrate(bench, param, y, A, ref: int, T_SO_nominal, X0, Z0, rob
     h(x_i) - h(x_ref) + noise (row ref is unused: zero by construction), x_i the lens pose
     of the chain Z^-1 A_i P(a_i) X (``joint.pose_chain``), theta ~ N(0, I), a_i ~
     N(0, robot_cov), the reference's whitened noise e ~ N(0, I) shared by every row.
-    Levenberg-Marquardt on the dense normal equations (the model is exact: no linearisation
-    enters the cost); covariance from the information at the estimate."""
+    Levenberg-Marquardt on the dense normal equations with the shared step policy
+    (``trust_region``; the model is exact: no linearisation enters the cost); covariance
+    from the information at the estimate. The Jacobians are retaken every iteration and the
+    radius carries over (Moré's scheme); the first step is Gauss-Newton's."""
     y = np.asarray(y, float)
     A = np.asarray(A, float)
     n, m = y.shape
@@ -291,7 +294,7 @@ def referenced_calibrate(bench, param, y, A, ref: int, T_SO_nominal, X0, Z0, rob
     if not lit:
         raise CalibrationError("referenced calibration: the start leaves a pose unlit; start closer")
     c = cost(w, a, theta, e)
-    lam, converged, it = 1e-6, False, 0
+    radius, converged, it = None, False, 0  # trust radius (None: the Gauss-Newton step's length)
     N = G + 6 * rows.size
     for it in range(1, max_iter + 1):
         S, Jt = pb.jacobians(theta, x, uv)
@@ -322,9 +325,17 @@ def referenced_calibrate(bench, param, y, A, ref: int, T_SO_nominal, X0, Z0, rob
         if dec < tol ** 2 * max(c / max(rows.size * m - 12, 1), 1e-9):
             converged = True
             break
+        # the shared step policy (trust_region): Marquardt's scaling, radius in 1-sigma units
+        D = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        As, gs = H / np.outer(D, D), g / D
         accepted = False
-        while lam < 1e12:
-            d = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
+        while True:
+            if radius is None:  # the first step: Gauss-Newton's, its length the radius
+                u = eigen_step(As[None], gs[None], np.array([np.inf]))[0][0]
+                radius = float(np.linalg.norm(u))
+            else:
+                u = eigen_step(As[None], gs[None], np.array([radius]))[0][0]
+            d = u / D
             Xn, Zn = X @ pose_to_matrix(d[:6]), Z @ pose_to_matrix(d[6:12])
             thn, en = theta + d[12:12 + k], e + d[18 + k:G]
             an = a.copy()
@@ -332,12 +343,14 @@ def referenced_calibrate(bench, param, y, A, ref: int, T_SO_nominal, X0, Z0, rob
             an[rows] += d[G:].reshape(-1, 6)
             wn, litn, Bn, xn, uvn = residual(Xn, Zn, thn, an, en, uv)
             cn = cost(wn, an, thn, en) if litn else np.inf
+            rho = float(gain_ratio(c - cn, predicted_decrease(g, d, H @ d)))
+            radius = float(next_radius(radius, np.linalg.norm(u), rho, cn <= c))
             if cn <= c:
                 X, Z, theta, a, e, w, B, x, uv, c = Xn, Zn, thn, an, en, wn, Bn, xn, uvn, cn
-                lam = max(lam / 10, 1e-12)
                 accepted = True
                 break
-            lam *= 10
+            if radius <= 1e-12:
+                break
         if not accepted:
             converged = True
             break

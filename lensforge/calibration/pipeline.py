@@ -46,10 +46,14 @@ from .pose_estimation import PoseEstimate, UnobservableWarning, estimate_pose_mo
 from .session_joint import joint_session
 from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, robust_chi2_threshold
 
-__all__ = ["METHODS", "run", "two_stage", "joint", "estimate_one", "TooFewPosesError", "UNINFORMATIVE_VARIANCE"]
+__all__ = ["METHODS", "VERSION", "run", "two_stage", "joint", "estimate_one", "TooFewPosesError", "UNINFORMATIVE_VARIANCE"]
 
 # variance (mm^2 or rad^2) of a lens-pose direction its estimate does not observe: (10 mm)^2, (10 rad)^2
 UNINFORMATIVE_VARIANCE = 100.0
+# What the methods compute, versioned: stored studies hash it (a store made by another
+# version is not resumed). 1: one pipeline for calibrate and the study (issue 20);
+# 2: the joint fits step by the shared trust-region policy (``trust_region``).
+VERSION = 2
 
 
 class TooFewPosesError(CalibrationError):

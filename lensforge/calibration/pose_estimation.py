@@ -9,11 +9,12 @@ r(x) = L^-1 (h(x) - z), R = L L^T the Zernike noise covariance, by ONE solver,
 the as-built study runs); one measurement is its P = 1 call. Each pose has its own
 trust region in the bench's pose scales (u = x / D: 1 mm, 1 deg), radius 1 at the
 start (widened to the first Gauss-Newton step if that step stays in the bench's pose
-range), doubled after a well predicted step on the boundary, quartered after a poor or
-rejected one; the step is the exact trust-region (LM) step, found in the eigenbasis of
-J^T J. The trust region keeps a weakly observable DOF (the paper Zernike lens's rz,
-1-sigma ~ 11 deg at nominal) from jumping out of the bench's range on the first
-Gauss-Newton step; Marquardt's damping (lambda diag(J^T J)) does not, since it damps
+range), then changed by the step policy every lensforge solver shares
+(``trust_region``: doubled after a well predicted step on the boundary, quartered after
+a poor or rejected one); the step is the exact trust-region (LM) step, found in the
+eigenbasis of J^T J (``trust_region.eigen_step``). The trust region keeps a weakly
+observable DOF (the paper Zernike lens's rz, 1-sigma ~ 11 deg at nominal) from jumping
+out of the bench's range on the first Gauss-Newton step; Marquardt's damping (lambda diag(J^T J)) does not, since it damps
 a weak direction least (on 30 noisy paper-Zernike estimates it converged on 7, the
 trust region on 26; ``benchmarks/bench_pose_convergence.py``). The Jacobian is
 ``optics.sensitivity.jacobian`` (exact: the rays' derivatives carried through the
@@ -68,6 +69,7 @@ from ..optics.pose import DOF_NAMES
 from ..optics.sensitivity import JACOBIAN_EVALS, jacobian, observability
 from ..optics.shack_hartmann import ForwardModel, check_pose_range
 from .initial_poses import prior_covariance
+from .trust_region import SHRINK_BELOW, eigen_step, gain_ratio, next_radius, predicted_decrease
 
 __all__ = ["PoseEstimate", "BatchPoseEstimate", "UnobservableWarning", "WeakObservabilityWarning", "estimate_pose",
            "estimate_pose_model", "estimate_poses_batch", "ESTIMATORS", "METHODS", "STOP_REASONS"]
@@ -125,36 +127,6 @@ def _whiten(Li, d):
 def _whiten_jac(Li, J):
     """L^-1 J for Jacobians J (P, m, 6)."""
     return _whiten(Li, J.transpose(0, 2, 1)).transpose(0, 2, 1)
-
-
-def _trust_region_step(A, g, delta, n_newton: int = 30):
-    """Batched exact trust-region step: du minimising g.du + du.A du / 2 with |du| <= delta.
-
-    A: (P, n, n) symmetric positive semi-definite (Gauss-Newton J^T J); g: (P, n);
-    delta: (P,). The Levenberg-Marquardt step du = -(A + lam I)^-1 g with lam >= 0 the
-    smallest value that keeps the step inside the region, found by Newton's method on
-    1/|du(lam)| - 1/delta (More & Sorensen) in A's eigenbasis; lam = 0 (the Gauss-Newton
-    step) when that fits. Returns (du, lam)."""
-    w, Q = np.linalg.eigh(A)
-    w = np.clip(w, 0.0, None)
-    gq = np.einsum("pji,pj->pi", Q, g)
-    floor = 1e-15 * np.maximum(w[:, -1:], 1e-300)  # an exactly singular direction: a huge, finite GN step
-    lam = np.zeros(len(delta))
-    for _ in range(n_newton):
-        d = np.maximum(w + lam[:, None], floor)
-        norm = np.sqrt(np.sum((gq / d) ** 2, axis=1))
-        s3 = np.sum(gq**2 / d**3, axis=1)
-        outside = norm > delta * (1 + 1e-6)
-        if not outside.any():
-            break
-        step = np.divide(norm**2 * (norm - delta), s3 * delta, out=np.zeros_like(norm), where=outside & (s3 > 0))
-        lam = np.where(outside, lam + step, lam)
-    d = np.maximum(w + lam[:, None], floor)
-    du = -np.einsum("pij,pj->pi", Q, gq / d)
-    # Newton converges from below (lam too small, step slightly long): clip onto the boundary
-    n = np.linalg.norm(du, axis=1)
-    du *= np.minimum(1.0, delta / np.maximum(n, 1e-300))[:, None]
-    return du, lam
 
 
 @dataclass(frozen=True)
@@ -275,33 +247,28 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
             # a first Gauss-Newton step that stays inside the bench's pose range widens the
             # initial region to its length: a well observed lens converges as fast as with
             # undamped GN, a weak direction that would jump out keeps the small region
-            gn = _trust_region_step(A, g, np.full(a.size, np.inf))[0]
+            gn = eigen_step(A, g, np.full(a.size, np.inf))[0]
             xg = x[a] + gn * D
             inside = (np.all(np.abs(xg[:, :3]) <= lim.translation_mm, axis=1)
                       & (np.linalg.norm(xg[:, 3:], axis=1) <= lim.rotation_rad))
             delta[a] = np.where(inside, np.minimum(np.maximum(delta[a], np.linalg.norm(gn, axis=1)), cap), delta[a])
-        du, _ = _trust_region_step(A, g, delta[a])
+        du, _ = eigen_step(A, g, delta[a])
         xn = x[a] + du * D
         rn_res = model.evaluate(xn, uv0=uv[a], check_range=False)
         n_evals += a.size
         rn = _whiten(L, rn_res.z - Z[a])
         cn = np.where(rn_res.valid, np.sum(rn * rn, axis=1), np.inf)
         # predicted decrease of the linear model, |r|^2 - |r + J du|^2
-        pred = -(2.0 * np.einsum("pi,pi->p", g, du) + np.einsum("pi,pij,pj->p", du, A, du))
+        pred = predicted_decrease(g, du, np.einsum("pij,pj->pi", A, du))
         actual = cost[a] - cn
-        rho = np.divide(actual, pred, out=np.zeros_like(pred), where=pred > 0)
+        rho = gain_ratio(actual, pred)
         acc = cn <= cost[a]
         step = np.linalg.norm(du, axis=1)
         u_norm = np.linalg.norm(x[a] / D, axis=1)
         small_step = step <= xtol * (xtol + u_norm)
-        small_cost = (actual <= ftol * cost[a]) & (rho > 0.25)
+        small_cost = (actual <= ftol * cost[a]) & (rho > SHRINK_BELOW)
         tiny = small_step | (pred <= ftol * np.maximum(cost[a], 1e-300))
-        # trust radius: shrink to a quarter of a poorly predicted step, double after a
-        # well predicted one that reached the boundary (More's rules, as scipy's trf)
-        shrink = ~acc | (rho < 0.25)
-        grow = acc & (rho > 0.75) & (step >= 0.95 * delta[a])
-        new_delta = np.where(shrink, 0.25 * step, np.where(grow, 2.0 * delta[a], delta[a]))
-        delta[a] = np.minimum(new_delta, cap)
+        delta[a] = next_radius(delta[a], step, rho, acc, cap)  # the shared rule (trust_region)
         ai = a[acc]
         x[ai], r[ai], cost[ai], zc[ai] = xn[acc], rn[acc], cn[acc], rn_res.z[acc]
         uv[ai] = rn_res.uv[acc]

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..asbuilt.tolerances import Tolerances, resolve_tolerances, sample_as_built
 from ..calibration.initial_poses import InitialPoseModel
-from ..calibration.pipeline import TooFewPosesError, run
+from ..calibration.pipeline import VERSION as PIPELINE_VERSION, TooFewPosesError, run
 from ..calibration.robot import flange_pose, paper_scene
 from ..calibration.session_result import OUTLIER_ALPHA
 from ..errors import ConfigError, LensforgeError, PoseRangeError
@@ -420,6 +420,7 @@ def context_config(ctx: StudyContext, seed: int) -> dict:
     sc = ctx.scene
     return {
         "schema_version": SCHEMA_VERSION,
+        "pipeline": PIPELINE_VERSION,
         "lens": ctx.lens.to_dict(),
         "bench": ctx.bench.to_dict(),
         "tolerances": ctx.tolerances.to_dict() if ctx.tolerances is not None else None,
