@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 from .errors import ConfigError
 
-__all__ = ["Num", "number", "number_array", "check_header", "check_ranges", "flatten",
+__all__ = ["Num", "number", "number_array", "field_number", "check_header", "check_ranges", "flatten",
            "BENCH_RANGES", "LENS_RANGES", "POSE_TRANSLATION", "SCHEMA_VERSION",
            "MAX_LENSLETS", "DESIGN_KIND", "MAX_SAG_COEFFICIENTS"]
 
@@ -59,6 +59,12 @@ class Num:
         return f"{lo} and <= {self.hi:g}{u}"
 
 
+def _finite(f: float, where: str, shown: str) -> float:
+    if not math.isfinite(f):
+        raise ConfigError(f"{where}: {shown} is not a finite number (NaN/inf)")
+    return f
+
+
 def _plain_number(v, where: str, integer: bool = False) -> float:
     """v as a float if it is a real number (int/float, numpy scalars too), else ConfigError."""
     if isinstance(v, bool) or not hasattr(v, "__float__") or isinstance(v, (str, bytes)):
@@ -66,14 +72,24 @@ def _plain_number(v, where: str, integer: bool = False) -> float:
     if type(v).__module__ == "numpy" and getattr(v, "ndim", 0) != 0:
         raise ConfigError(f"{where}: expected a number, got an array")
     try:
-        f = float(v)
+        f = _finite(float(v), where, repr(v))
     except OverflowError:
         raise ConfigError(f"{where}: number {_short(v)} is too large") from None
-    if not math.isfinite(f):
-        raise ConfigError(f"{where}: must be finite, got {v!r}")
     if integer and f != int(f):
         raise ConfigError(f"{where}: expected a whole number, got {v!r}")
     return f
+
+
+def field_number(source, row: int, field: str, text: str) -> float:
+    """A text table's field as a finite float, else a ConfigError naming the file, row and
+    field (the CSV readers of robot poses, WFS data and instrument exports)."""
+    t = text.strip()
+    where = f"{source}: row {row}, field {field}"
+    try:
+        v = float(t)
+    except ValueError:
+        raise ConfigError(f"{where}: {t!r} is not a number") from None
+    return _finite(v, where, t)
 
 
 def _short(v, n: int = 40) -> str:

@@ -114,7 +114,7 @@ def test_bad_bench_toml(tmp_path):
     with pytest.raises(ConfigError, match=r"laser.wavelength_nm: expected a number"):
         lf.load_bench(p)
     p.write_text("[placement]\ndistance_mm = nan\n")
-    with pytest.raises(ConfigError, match=r"placement.distance_mm: must be finite"):
+    with pytest.raises(ConfigError, match=r"placement.distance_mm: nan is not a finite number"):
         lf.load_bench(p)
     p.write_text("[placement\n")
     with pytest.raises(ConfigError, match="not valid TOML"):

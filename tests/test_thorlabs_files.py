@@ -148,16 +148,22 @@ def test_tilt_cancelled_row_per_pose_csv_is_detected(tmp_path):
 
 
 def test_header_against_bench_names_both_values(tmp_path):
+    from lensforge.calibration.plausibility import check_wfs_header
+
     bench = Bench.default()
-    thorlabs.check_against_bench(HEADER, bench, "f")
-    with pytest.raises(ConfigError, match=r"633 nm contradicts the bench's laser.wavelength_nm = 532 nm"):
-        thorlabs.check_against_bench({**HEADER, "wavelength_nm": 633.0}, bench, "f")
-    with pytest.raises(ConfigError, match=r"the file's 2 mm contradicts the bench's 2 x sensor.pupil_radius_mm = 1.8 mm"):
-        thorlabs.check_against_bench({**HEADER, "pupil_radius_mm": 1.0}, bench, "f")
-    with pytest.raises(ConfigError, match=r"\(0.1, 0\) mm contradicts the bench's sensor.pupil_center_mm = \(0, 0\)"):
-        thorlabs.check_against_bench({**HEADER, "pupil_center_mm": (0.1, 0.0)}, bench, "f")
-    # within the software's printed precision: accepted
-    thorlabs.check_against_bench({**HEADER, "wavelength_nm": 532.2, "pupil_radius_mm": 0.9004}, bench, "f")
+    h = {**HEADER, "instrument_file": "thorlabs_export"}
+    for mode in ("error", "file"):  # an instrument file is checked in both modes
+        check_wfs_header(bench, h, "f", mode)
+        with pytest.raises(ConfigError, match=r"633 nm contradicts the bench's laser.wavelength_nm = 532 nm"):
+            check_wfs_header(bench, {**h, "wavelength_nm": 633.0}, "f", mode)
+        with pytest.raises(ConfigError, match=r"the file's 1 mm contradicts the bench's sensor.pupil_radius_mm = 0.9 mm "
+                                              r"\(diameter 2 against 1.8 mm\)"):
+            check_wfs_header(bench, {**h, "pupil_radius_mm": 1.0}, "f", mode)
+        with pytest.raises(ConfigError, match=r"\(0.1, 0\) mm contradicts the bench's sensor.pupil_center_mm = \(0, 0\)"):
+            check_wfs_header(bench, {**h, "pupil_center_mm": (0.1, 0.0)}, "f", mode)
+    # within the software's printed precision: accepted; the bench's values chosen: not checked
+    check_wfs_header(bench, {**h, "wavelength_nm": 532.2, "pupil_radius_mm": 0.9004}, "f")
+    assert check_wfs_header(bench, {**h, "wavelength_nm": 633.0}, "f", "bench") == {}
 
 
 @pytest.fixture(scope="module")

@@ -58,7 +58,6 @@ KUKA KRL ``.src``/``.dat`` pair, see ``krl_program``).
 from __future__ import annotations
 
 import csv
-import math
 import os
 import shutil
 import tempfile
@@ -70,6 +69,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
+from ..input_checks import field_number
 from ..interrupts import committing
 from ..fileio import MAX_TABLE_BYTES, dumps_json, read_bounded, read_json, write_atomic
 
@@ -206,16 +206,6 @@ def _split_csv(path: Path, what: str):
     return comments, header, rows
 
 
-def _number(path: Path, no: int, name: str, text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise ConfigError(f"{path}: row {no}, field {name}: {text!r} is not a number") from None
-    if not math.isfinite(v):
-        raise ConfigError(f"{path}: row {no}, field {name}: {text} is not a finite number (NaN/inf)")
-    return v
-
-
 def _ids_unique(path: Path, ids: list, rows: list) -> None:
     seen = {}
     for i, r in zip(ids, rows):
@@ -240,7 +230,7 @@ def _numeric_rows(path: Path, rows, names: list[str]):
         if len(f) != len(names):
             raise ConfigError(f"{path}: row {no}: {len(f)} fields, expected {len(names)} ({','.join(names)})")
         ids.append(f[0])
-        vals.append([_number(path, no, n, t) for n, t in zip(names[1:], f[1:])])
+        vals.append([field_number(path, no, n, t) for n, t in zip(names[1:], f[1:])])
         nos.append(no)
     _ids_unique(path, ids, nos)
     return ids, np.array(vals, dtype=float), nos
@@ -367,6 +357,13 @@ POSE_READERS = {"xyzabc_csv": read_xyzabc_csv, "quaternion_csv": read_quaternion
                 "kuka_log": _read_kuka_log}
 
 
+def _reader_name(registry: dict, fmt: str, what: str) -> str:
+    """fmt if it names one of the registry's readers, else ConfigError listing them."""
+    if fmt not in registry:
+        raise ConfigError(f"{what} format: {fmt!r} is not one of {', '.join(registry)}")
+    return fmt
+
+
 def _sniff_pose_format(path: Path) -> str:
     if path.suffix.lower() == ".json":
         return "json_4x4"
@@ -405,10 +402,7 @@ def read_robot_poses(path: str | os.PathLike[str], fmt: str | None = None) -> Po
         A bad file (one line naming the file, row and field).
     """
     path = Path(path)
-    fmt = fmt or _sniff_pose_format(path)
-    if fmt not in POSE_READERS:
-        raise ConfigError(f"pose format: {fmt!r} is not one of {', '.join(POSE_READERS)}")
-    return POSE_READERS[fmt](path)
+    return POSE_READERS[_reader_name(POSE_READERS, fmt or _sniff_pose_format(path), "pose")](path)
 
 
 # ----------------------------------------------------------------------------- WFS readers
@@ -427,7 +421,7 @@ def _wfs_header(path: Path, comments: dict) -> dict:
         if key not in comments:
             continue
         no, text = comments[key]
-        vals = [_number(path, no, key, t.strip()) for t in text.replace(";", ",").split(",") if t.strip()]
+        vals = [field_number(path, no, key, t.strip()) for t in text.replace(";", ",").split(",") if t.strip()]
         if len(vals) != n:
             raise ConfigError(f"{path}: row {no}, field {key}: expected {n} number(s), got {text!r}")
         if key != "pupil_center_mm" and vals[0] <= 0:
@@ -507,7 +501,7 @@ def read_wfs_json(path) -> WfsData:
             order = _check_modes(path, k, f"row {row}, field zernike")
         if len(m["zernike"]) != k:
             raise ConfigError(f"{path}: row {row}, field zernike: {len(m['zernike'])} modes, expected {k}")
-        zs.append([_number(path, row, f"zernike[{j}]", "x" if isinstance(v, bool) else str(v))
+        zs.append([field_number(path, row, f"zernike[{j}]", "x" if isinstance(v, bool) else str(v))
                    for j, v in enumerate(m["zernike"])])
         ids.append(str(m["pose"]).strip())
         nos.append(row)
@@ -588,9 +582,7 @@ def read_wfs(path: str | os.PathLike[str], fmt: str | None = None,
         A bad file (one line naming the file, row and field).
     """
     path = Path(path)
-    fmt = fmt or _sniff_wfs_format(path)
-    if fmt not in WFS_READERS:
-        raise ConfigError(f"WFS format: {fmt!r} is not one of {', '.join(WFS_READERS)}")
+    fmt = _reader_name(WFS_READERS, fmt or _sniff_wfs_format(path), "WFS")
     if fmt in _PER_POSE_READERS:
         return WFS_READERS[fmt](path, pose_pattern)
     return WFS_READERS[fmt](path)

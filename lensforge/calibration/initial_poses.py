@@ -30,9 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..optics.bench import Bench
 
-__all__ = ["InitialPoseModel", "prior_covariance", "sample_true_poses"]
+__all__ = ["InitialPoseModel", "prior_covariance"]
 
 
 @dataclass(frozen=True)
@@ -71,35 +70,3 @@ def prior_covariance(model: InitialPoseModel | None = None) -> np.ndarray:
     """Prior covariance (6, 6) of the true pose about the commanded pose (mm^2, rad^2)."""
     model = model or InitialPoseModel()
     return np.diag(model.sigma**2)
-
-
-def sample_true_poses(bench: Bench, n: int, rng: np.random.Generator, model: InitialPoseModel | None = None,
-                      commanded=None, lit=None, max_redraws: int = 20) -> np.ndarray:
-    """True lens poses (n, 6) drawn about the commanded pose (default nominal, zeros).
-
-    ``lit``: optional callable poses (k, 6) -> bool (k,) (e.g. ``ForwardModel.evaluate(...).valid``);
-    draws failing it, or outside the bench's pose range, are redrawn (each at most
-    ``max_redraws`` times; survivors are kept, so the caller sees the pupil loss).
-    """
-    model = model or InitialPoseModel()
-    if not isinstance(rng, np.random.Generator):
-        raise ConfigError("rng: expected a numpy.random.Generator (np.random.default_rng(seed))")
-    c = np.zeros(6) if commanded is None else np.asarray(commanded, dtype=float)
-    sig = model.sigma
-    x = c + rng.normal(size=(n, 6)) * sig
-    lim = bench.pose_limits
-
-    def bad(p):
-        out = (np.abs(p[:, :3]) > lim.translation_mm).any(1) | (np.linalg.norm(p[:, 3:], axis=1) > lim.rotation_rad)
-        if lit is not None and (~out).any():
-            ok = np.zeros(len(p), bool)
-            ok[~out] = np.asarray(lit(p[~out]), bool)
-            out = out | ~ok
-        return out
-
-    for _ in range(max_redraws):
-        b = bad(x)
-        if not b.any():
-            break
-        x[b] = c + rng.normal(size=(int(b.sum()), 6)) * sig
-    return x

@@ -42,6 +42,7 @@ from ..asbuilt.joint_information import chain_jacobians
 from .joint import JointProblem, pose_chain
 from .trust_region import eigen_step, gain_ratio, next_radius, predicted_decrease
 from . import thorlabs
+from .plausibility import check_wfs_header
 
 __all__ = ["Measurement", "MEASUREMENTS", "measurement", "slope_inputs", "plan_jacobians", "spot_bench", "joint_crlb", "canonical_ids",
            "referenced_session",
@@ -109,7 +110,7 @@ def spot_bench(bench, fields: thorlabs.SpotFields):
     """The bench with the device's MLA data (focal length, camera pixel) from a spot-field
     file; its header's wavelength and pupil are checked against the bench, and the lenslet
     pitch must be the bench's (ConfigError naming both values)."""
-    thorlabs.check_against_bench(fields.header, bench, fields.source)
+    check_wfs_header(bench, fields.header, fields.source, "file")  # an instrument file: checked in every mode
     pb = bench.sensor.pitch_mm * 1e3
     if abs(fields.lenslet_pitch_um - pb) > 1e-3:
         raise ConfigError(f"{fields.source}: field lenslet_pitch_um: the file's {fields.lenslet_pitch_um:g} um "

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import ConfigError, LensforgeError
 
-__all__ = ["HEADER_RTOL", "MAX_POSES", "REPEATABILITY_RANGE_MM", "check_wfs_header", "check_wfs_values",
+__all__ = ["HEADER_RTOL", "HEADER_TOLERANCE", "INSTRUMENT_TOLERANCE", "MAX_POSES", "REPEATABILITY_RANGE_MM", "check_wfs_header", "check_wfs_values",
            "check_robot_reach", "check_repeatability", "check_plan_motion", "job_memory_bytes", "check_job_memory",
            "available_memory_bytes", "WFS_HEADER_MODES", "pose_file_kind", "check_poses_count"]
 
@@ -71,29 +71,55 @@ def pose_file_kind(path) -> tuple[str, str | None]:
     return "xyzabc_csv", units
 
 
+# the header values a WFS file may carry, the bench field each must agree with, its unit and
+# the difference tolerated: lensforge's own CSV writes them exactly (relative 1e-3: printed
+# rounding, 0.9 vs 0.9009 mm; centre 1 um), an instrument's file to the software's printed
+# precision (Thorlabs: wavelength to 0.5 nm, pupil diameter and centre to 0.01 mm)
+_HEADER_FIELDS = (("wavelength_nm", "laser.wavelength_nm", "nm"),
+                  ("pupil_radius_mm", "sensor.pupil_radius_mm", "mm"),
+                  ("pupil_center_mm", "sensor.pupil_center_mm", "mm"))
+HEADER_TOLERANCE = {"wavelength_nm": ("rel", HEADER_RTOL), "pupil_radius_mm": ("rel", HEADER_RTOL),
+                    "pupil_center_mm": ("abs", HEADER_ATOL_MM)}
+INSTRUMENT_TOLERANCE = {"wavelength_nm": ("abs", 0.5), "pupil_radius_mm": ("abs", 0.005),
+                        "pupil_center_mm": ("abs", 0.005)}
+
+
+def _bench_value(bench, field_: str):
+    part, name = field_.split(".")
+    return np.asarray(getattr(getattr(bench, part), name), float)
+
+
+def _show(v: np.ndarray) -> str:
+    return f"{float(v):g}" if v.ndim == 0 else "(" + ", ".join(f"{float(c):g}" for c in v) + ")"
+
+
 def check_wfs_header(bench, header: dict, source: str, mode: str = "error") -> dict:
-    """The header values to apply for WFS ``header`` against ``bench``: mode "error"
-    (default): a value that contradicts the bench is a ConfigError naming both; "file": the
-    file's values win; "bench": the bench's win (header values dropped)."""
+    """The header values to apply for WFS ``header`` against ``bench``.
+
+    mode "error" (default): a value that contradicts the bench is a ConfigError naming both;
+    "file": the file's values win; "bench": the bench's win (header values dropped). An
+    instrument's own file (header ``instrument_file``: Thorlabs exports, SDK spot fields)
+    describes the instrument's settings, so it must agree with the bench in "file" mode too,
+    to the software's printed precision (``INSTRUMENT_TOLERANCE``)."""
     if mode not in WFS_HEADER_MODES:
         raise ConfigError(f"--wfs-header: {mode!r} is not one of {', '.join(WFS_HEADER_MODES)}")
     if mode == "bench":
         return {}
-    if mode == "file":
+    instrument = bool(header.get("instrument_file"))
+    if mode == "file" and not instrument:
         return dict(header)
-    pairs = (("wavelength_nm", bench.laser.wavelength_nm, "laser.wavelength_nm", "nm"),
-             ("pupil_radius_mm", bench.sensor.pupil_radius_mm, "sensor.pupil_radius_mm", "mm"))
-    for key, ref, field_, unit in pairs:
-        if key in header and abs(float(header[key]) - float(ref)) > HEADER_RTOL * abs(float(ref)):
-            raise ConfigError(f"{source}: field {key}: the file says {float(header[key]):g} {unit} but the bench's "
-                              f"{field_} is {float(ref):g} {unit}; fix the WFS software's setting or the bench, or "
-                              "choose one with --wfs-header file|bench")
-    if "pupil_center_mm" in header:
-        c, ref = np.asarray(header["pupil_center_mm"], float), np.asarray(bench.sensor.pupil_center_mm, float)
-        if np.max(np.abs(c - ref)) > HEADER_ATOL_MM:
-            raise ConfigError(f"{source}: field pupil_center_mm: the file says {tuple(c.tolist())} mm but the bench's "
-                              f"sensor.pupil_center_mm is {tuple(ref.tolist())} mm; fix the WFS software's pupil or the "
-                              "bench, or choose one with --wfs-header file|bench")
+    tolerance = INSTRUMENT_TOLERANCE if instrument else HEADER_TOLERANCE
+    fix = ("set the instrument's setting to the bench's or give the bench of this instrument (--bench)"
+           if instrument else "fix the WFS software's setting or the bench, or choose one with --wfs-header file|bench")
+    for key, field_, unit in _HEADER_FIELDS:
+        if key not in header:
+            continue
+        v, ref = np.asarray(header[key], float), _bench_value(bench, field_)
+        kind, tol = tolerance[key]
+        if np.max(np.abs(v - ref)) > (tol * np.max(np.abs(ref)) if kind == "rel" else tol):
+            extra = f" (diameter {2 * float(v):g} against {2 * float(ref):g} mm)" if key == "pupil_radius_mm" else ""
+            raise ConfigError(f"{source}: field {key}: the file's {_show(v)} {unit} contradicts the bench's "
+                              f"{field_} = {_show(ref)} {unit}{extra}; {fix}")
     return dict(header)
 
 

@@ -70,8 +70,6 @@ def bench_for_measurements(bench: Bench, wfs: formats.WfsData, wfs_header: str =
     "error" (a header value that contradicts the bench is a ConfigError naming both;
     ``plausibility.check_wfs_header``)."""
     h = check_wfs_header(bench, wfs.header, wfs.source or "WFS file", wfs_header)
-    if h.get("instrument_file"):  # an instrument's own file: its settings must agree with the bench
-        thorlabs.check_against_bench(h, bench, wfs.source)
     sensor = {"zernike_order": int(wfs.order)}
     if "pupil_radius_mm" in h:
         sensor["pupil_radius_mm"] = float(h["pupil_radius_mm"])

@@ -62,19 +62,19 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from ..input_checks import field_number
 from ..fileio import MAX_TABLE_BYTES, read_bounded
 from ..optics.zernike import nm_to_noll, noll_to_osa
 
 __all__ = ["read_text_any", "read_export", "export_text", "read_export_folder", "pose_id_from_name",
            "expand_measurements", "SpotFields", "read_spot_field", "read_spot_fields", "spot_field_csv",
-           "spot_field_npz", "check_tilt_not_cancelled", "check_against_bench", "POSE_ID_PATTERN",
-           "WAVELENGTH_TOL_NM", "PUPIL_TOL_MM", "TILT_ZERO_UM"]
+           "spot_field_npz", "check_tilt_not_cancelled", "POSE_ID_PATTERN",
+           "PUPIL_TOL_MM", "TILT_ZERO_UM"]
 
 POSE_ID_PATTERN = r"(\d+)(?!.*\d)"  # the last integer in a file name: pose_07.csv -> 7
 # ASSUMPTION: tolerances of a header against the bench. The software prints 3 decimals
 # (nm, mm); a laser line is known to well under 0.5 nm; 5 um is 1/30 lenslet pitch.
-WAVELENGTH_TOL_NM = 0.5
-PUPIL_TOL_MM = 0.005
+PUPIL_TOL_MM = 0.005  # the software prints the pupil to 0.01 mm (checked against the bench by plausibility)
 # |tilt| below this in every pose (um) = cancelled (a lens 20 mm off the sensor tilts
 # the wavefront by ~1e-2 um per um of decentre: a real tilt is far above rounding)
 TILT_ZERO_UM = 1e-9
@@ -139,13 +139,7 @@ def _num(path: Path, no: int, name: str, text: str) -> float:
     t = text.strip()
     if _COMMA_DECIMAL.match(t):
         raise _comma_decimal_error(path, no, t)
-    try:
-        v = float(t)
-    except ValueError:
-        raise ConfigError(f"{path}: row {no}, field {name}: {t!r} is not a number") from None
-    if not math.isfinite(v):
-        raise ConfigError(f"{path}: row {no}, field {name}: {t} is not a finite number")
-    return v
+    return field_number(path, no, name, t)
 
 
 def _key_value(line: str):
@@ -379,29 +373,6 @@ def check_tilt_not_cancelled(tilt, source: str, what: str, flagged: bool = False
         raise ConfigError(f"{source}: {what} are zero in every pose: the measurements were taken with tilt "
                           "cancel ON; switch it OFF (WFS software: Setup > cancel wavefront tilt off; SDK: "
                           "WFS_CalcSpotToReferenceDeviations(instr, cancelWavefrontTilt=0)) and record again")
-
-
-def check_against_bench(header: dict, bench, source: str) -> None:
-    """ConfigError naming both values when an instrument file's wavelength or pupil
-    contradicts the bench (tolerances WAVELENGTH_TOL_NM, PUPIL_TOL_MM)."""
-    if "wavelength_nm" in header:
-        w, wb = float(header["wavelength_nm"]), float(bench.laser.wavelength_nm)
-        if abs(w - wb) > WAVELENGTH_TOL_NM:
-            raise ConfigError(f"{source}: field wavelength: the file's {w:g} nm contradicts the bench's "
-                              f"laser.wavelength_nm = {wb:g} nm; set the WFS software's wavelength to the laser's "
-                              "or give the bench that describes this laser (--bench)")
-    if "pupil_radius_mm" in header:
-        r, rb = float(header["pupil_radius_mm"]), float(bench.sensor.pupil_radius_mm)
-        if abs(r - rb) > PUPIL_TOL_MM:
-            raise ConfigError(f"{source}: field pupil diameter: the file's {2 * r:g} mm contradicts the bench's "
-                              f"2 x sensor.pupil_radius_mm = {2 * rb:g} mm; set the WFS pupil to the bench's "
-                              "or give a matching bench (--bench)")
-    if "pupil_center_mm" in header:
-        c, cb = np.asarray(header["pupil_center_mm"], float), np.asarray(bench.sensor.pupil_center_mm, float)
-        if np.max(np.abs(c - cb)) > PUPIL_TOL_MM:
-            raise ConfigError(f"{source}: field pupil centre: the file's ({c[0]:g}, {c[1]:g}) mm contradicts the "
-                              f"bench's sensor.pupil_center_mm = ({cb[0]:g}, {cb[1]:g}) mm; centre the WFS pupil "
-                              "there or give a matching bench (--bench)")
 
 
 # ----------------------------------------------------------------------------- SDK spot fields

@@ -51,3 +51,19 @@ def check_seed(seed: int, option: str = "--seed") -> int:
     if not 0 <= seed < 2**63:
         raise ConfigError(f"{option}: must be an integer from 0 to 2**63 - 1, got {seed}")
     return seed
+
+
+def end_on_failed_check(passed: bool, reason: str | None, chi2_dof: float, accept: bool, *, mistake: str | None,
+                        unexplained: str, accepted_as: str = "written as a calibration") -> None:
+    """The end of a command whose fit was model-checked (issue 23's rule): nothing when it
+    passed; a warning with ``--accept-failed-check``; else ModelCheckError (exit 3) with the
+    statistic and the likely mistake's message, or ``unexplained`` (what to check)."""
+    if passed:
+        return
+    if accept:
+        info(f"warning: {reason}; {accepted_as} because of --accept-failed-check")
+        return
+    from ..errors import ModelCheckError
+
+    head = f"model check failed (chi2/dof {chi2_dof:.3g})"
+    raise ModelCheckError(f"{head}; {mistake}" if mistake is not None else f"{head}: {unexplained}")

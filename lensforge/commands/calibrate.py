@@ -19,23 +19,13 @@ from typing import Optional
 
 import typer
 
-from ..errors import CalibrationError, ConfigError, LensforgeError, ModelCheckError
+from ..errors import CalibrationError, ConfigError, LensforgeError
 from ..fileio import check_output
 from ..progress import progress_bar
-from ._common import ROBOT_HELP, bench_arg, emit_json, info
+from ._common import ROBOT_HELP, bench_arg, emit_json, end_on_failed_check, info
 
 ACCEPT_HELP = ("write the result of a fit that fails its chi2 model check as a calibration anyway (research; "
                "the JSON keeps \"valid\": false); default: exit 3 with diagnostics only")
-
-
-def failed_check_line(chi2_dof: float, reason: str | None, mistake, where: str) -> str:
-    """The one line of a failed model check: the statistic, then the likely mistake or what to check."""
-    head = f"model check failed (chi2/dof {chi2_dof:.3g})"
-    if mistake is not None:
-        return f"{head}; {mistake.message}; diagnostics in {where}"
-    return (f"{head}: {reason}; none of the usual convention mistakes (units, angle units, quaternion and "
-            f"Zernike order, waves, sign, another design) explains it; check the lens as built, the bench file "
-            f"and the noise model; diagnostics in {where}, no easy_handeye.yaml written")
 
 
 def explain_no_fit(e: CalibrationError, design, measurements, robot_poses, bench, robot, method, tolerances,
@@ -126,8 +116,9 @@ def calibrate_cmd(
     info("files: " + ", ".join(str(v) for v in paths.values()))
     if json_out:
         emit_json(res.to_json())
-    if not res.valid:
-        if accept_failed_check:
-            info(f"warning: {res.check_failure}; written as a calibration because of --accept-failed-check")
-        else:
-            raise ModelCheckError(failed_check_line(res.chi2_dof, res.check_failure, mistake, str(out)))
+    end_on_failed_check(res.valid, res.check_failure, res.chi2_dof, accept_failed_check,
+                        mistake=None if mistake is None else f"{mistake.message}; diagnostics in {out}",
+                        unexplained=(f"{res.check_failure}; none of the usual convention mistakes (units, angle "
+                                     "units, quaternion and Zernike order, waves, sign, another design) explains "
+                                     "it; check the lens as built, the bench file and the noise model; diagnostics "
+                                     f"in {out}, no easy_handeye.yaml written"))

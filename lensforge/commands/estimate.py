@@ -13,7 +13,7 @@ import typer
 from ..errors import CalibrationError, ConfigError
 from ..fileio import check_output, staged_dir, write_atomic
 from ..progress import progress_bar
-from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, info, load_bench_arg
+from ._common import MAX_TRIALS, bench_arg, check_seed, emit_json, end_on_failed_check, info, load_bench_arg
 
 
 def estimate_study(
@@ -120,14 +120,9 @@ def estimate_cmd(
                    **({"diagnosis": dx.to_dict()} if dx is not None else {}), **e.to_dict(),
                    "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in e.cov],
                    "cov_units": "mm and rad, pose vector (tx, ty, tz, rx, ry, rz)"})
-    if not mc.passed:
-        if accept_failed_check:
-            info(f"warning: {mc.reason}; reported because of --accept-failed-check")
-            return
-        from ..errors import ModelCheckError
-
-        head = f"model check failed (chi2/dof {e.chi2_dof:.3g})"
-        raise ModelCheckError(f"{head}; {mistake.message}" if mistake is not None else
-                              f"{head}: the measured wavefront does not fit the design's model at any pose; none of "
-                              "the usual mistakes (Zernike order, waves, sign, another design) explains it; check the "
-                              "lens as built, the bench file (pupil, wavelength) and the sensor's noise")
+    end_on_failed_check(mc.passed, mc.reason, e.chi2_dof, accept_failed_check, accepted_as="reported",
+                        mistake=None if mistake is None else mistake.message,
+                        unexplained=("the measured wavefront does not fit the design's model at any pose; none of "
+                                     "the usual mistakes (Zernike order, waves, sign, another design) explains it; "
+                                     "check the lens as built, the bench file (pupil, wavelength) and the sensor's "
+                                     "noise"))

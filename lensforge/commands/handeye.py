@@ -29,7 +29,7 @@ import typer
 from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json, read_json
 from ..input_checks import POSE_TRANSLATION, Num, check_header, number, number_array
-from ._common import emit_json, info
+from ._common import emit_json, end_on_failed_check, info
 
 _NOISE_KEYS = ("robot_sigma_trans_mm", "robot_sigma_rot_deg", "lens_sigma_trans_mm", "lens_sigma_rot_deg")
 # ASSUMPTION: 1-sigma beyond 10 mm or 10 deg is no calibration noise but a unit or typing mistake
@@ -307,14 +307,8 @@ def handeye_cmd(
         info(f"wrote {save_figure(plot_handeye_residuals(res.residuals, res.residual_chi2, title), plot)}")
     if json_out:
         emit_json(result)
-    if not valid:
-        if accept_failed_check:
-            info(f"warning: {mc.reason}; written as a calibration because of --accept-failed-check")
-            return
-        from ..errors import ModelCheckError
-
-        head = f"model check failed (chi2/dof {res.chi2_dof:.3g})"
-        raise ModelCheckError(f"{head}; {mistake['message']}" if mistake is not None else
-                              f"{head}: the residuals exceed the given noise model; none of the usual mistakes "
-                              "(units, inverted A or B, A and B swapped) explains it; check the noise model and the "
-                              "pose files" + (f"; diagnostics in {out}" if out is not None else ""))
+    end_on_failed_check(valid, mc.reason, res.chi2_dof, accept_failed_check,
+                        mistake=None if mistake is None else mistake["message"],
+                        unexplained=("the residuals exceed the given noise model; none of the usual mistakes "
+                                     "(units, inverted A or B, A and B swapped) explains it; check the noise model "
+                                     "and the pose files" + (f"; diagnostics in {out}" if out is not None else "")))

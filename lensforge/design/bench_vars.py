@@ -30,7 +30,7 @@ from ..errors import ConfigError
 from ..optics.bench import Bench
 from ..optics.lens import Lens
 from .expanders import expander, fitting_expanders
-from .parameterisation import Parameterisation
+from .parameterisation import BoxBounds, Parameterisation
 
 __all__ = ["BENCH_VARIABLES", "BenchVariables", "CoDesignParameterisation", "bench_summary", "bench_label"]
 
@@ -92,7 +92,7 @@ def _laser_beam(bench: Bench) -> float:
 
 
 @dataclass(frozen=True)
-class CoDesignParameterisation:
+class CoDesignParameterisation(BoxBounds):
     """A lens parameterisation followed by the free bench variables on a base bench.
 
     Same interface as ``Parameterisation`` (n, names, lo, hi, to_unit, from_unit, in_bounds,
@@ -156,39 +156,12 @@ class CoDesignParameterisation:
         return self.lens_par.names + self.bench_names
 
     @property
-    def n(self) -> int:
-        return len(self.names)
-
-    @property
     def lower(self) -> tuple:
         return self.lens_par.lower + self.bench_lower
 
     @property
     def upper(self) -> tuple:
         return self.lens_par.upper + self.bench_upper
-
-    @property
-    def lo(self) -> np.ndarray:
-        return np.asarray(self.lower, dtype=float)
-
-    @property
-    def hi(self) -> np.ndarray:
-        return np.asarray(self.upper, dtype=float)
-
-    def to_unit(self, p) -> np.ndarray:
-        return (np.asarray(p, dtype=float) - self.lo) / (self.hi - self.lo)
-
-    def from_unit(self, u) -> np.ndarray:
-        u = np.clip(np.asarray(u, dtype=float), 0.0, 1.0)
-        return self.lo + u * (self.hi - self.lo)
-
-    def in_bounds(self, p, rtol: float = 1e-12) -> bool:
-        p = np.asarray(p, dtype=float)
-        slack = rtol * (self.hi - self.lo)
-        return bool(np.all(p >= self.lo - slack) and np.all(p <= self.hi + slack))
-
-    def bounds_dict(self) -> dict:
-        return {n: [lo, hi] for n, lo, hi in zip(self.names, self.lower, self.upper)}
 
     def labels(self) -> dict:
         lab = self.lens_par.labels()

@@ -43,7 +43,7 @@ from ..optics.lens import Lens, paper_lens
 from ..optics.surfaces import ExtendedPolynomial, ZernikeSag, extended_monomial_exponents
 from ..optics.zernike import noll_to_nm
 
-__all__ = ["MODELS", "FREE_PRESETS", "Parameterisation", "parameterisation", "default_bound",
+__all__ = ["MODELS", "FREE_PRESETS", "BoxBounds", "Parameterisation", "parameterisation", "default_bound",
            "parse_bounds", "describe_parameter"]
 
 MODELS = ("polynomial", "extended_polynomial", "zernike", "conic")
@@ -200,19 +200,9 @@ def _get(lens: Lens, name: str) -> float:
     return float(v)
 
 
-@dataclass(frozen=True)
-class Parameterisation:
-    """Maps a parameter vector p (physical units) to a lens.
-
-    model: model name; template: lens whose non-free values are kept; names: free
-    parameter names; lower/upper: bounds (same units as p).
-    """
-
-    model: str
-    template: Lens
-    names: tuple
-    lower: tuple
-    upper: tuple
+class BoxBounds:
+    """The box of a parameter vector p (physical units) and the optimisers' unit cube:
+    for a class with ``names``, ``lower`` and ``upper`` (tuples)."""
 
     @property
     def n(self) -> int:
@@ -225,6 +215,40 @@ class Parameterisation:
     @property
     def hi(self) -> np.ndarray:
         return np.asarray(self.upper, dtype=float)
+
+    def to_unit(self, p) -> np.ndarray:
+        """p -> u in [0, 1]^n (the optimisers' space)."""
+        return (np.asarray(p, dtype=float) - self.lo) / (self.hi - self.lo)
+
+    def from_unit(self, u) -> np.ndarray:
+        """u in [0, 1]^n -> p (clipped to the bounds)."""
+        u = np.clip(np.asarray(u, dtype=float), 0.0, 1.0)
+        return self.lo + u * (self.hi - self.lo)
+
+    def in_bounds(self, p, rtol: float = 1e-12) -> bool:
+        """p inside the box (to rtol of its widths)."""
+        p = np.asarray(p, dtype=float)
+        slack = rtol * (self.hi - self.lo)
+        return bool(np.all(p >= self.lo - slack) and np.all(p <= self.hi + slack))
+
+    def bounds_dict(self) -> dict:
+        """{name: [lower, upper]}."""
+        return {n: [lo, hi] for n, lo, hi in zip(self.names, self.lower, self.upper)}
+
+
+@dataclass(frozen=True)
+class Parameterisation(BoxBounds):
+    """Maps a parameter vector p (physical units) to a lens.
+
+    model: model name; template: lens whose non-free values are kept; names: free
+    parameter names; lower/upper: bounds (same units as p).
+    """
+
+    model: str
+    template: Lens
+    names: tuple
+    lower: tuple
+    upper: tuple
 
     def to_lens(self, p) -> Lens:
         """The lens of parameter vector p (raises ConfigError on non-finite values)."""
@@ -247,23 +271,6 @@ class Parameterisation:
     def from_lens(self, lens: Lens) -> np.ndarray:
         """Parameter vector of a lens of the same surface kinds."""
         return np.array([_get(lens, n) for n in self.names])
-
-    def to_unit(self, p) -> np.ndarray:
-        """p -> u in [0, 1]^n (the optimisers' space)."""
-        return (np.asarray(p, dtype=float) - self.lo) / (self.hi - self.lo)
-
-    def from_unit(self, u) -> np.ndarray:
-        """u in [0, 1]^n -> p (clipped to the bounds)."""
-        u = np.clip(np.asarray(u, dtype=float), 0.0, 1.0)
-        return self.lo + u * (self.hi - self.lo)
-
-    def in_bounds(self, p, rtol: float = 1e-12) -> bool:
-        p = np.asarray(p, dtype=float)
-        slack = rtol * (self.hi - self.lo)
-        return bool(np.all(p >= self.lo - slack) and np.all(p <= self.hi + slack))
-
-    def bounds_dict(self) -> dict:
-        return {n: [lo, hi] for n, lo, hi in zip(self.names, self.lower, self.upper)}
 
     def labels(self) -> dict:
         return {n: describe_parameter(self.template, n) for n in self.names}
