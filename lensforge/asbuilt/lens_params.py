@@ -31,7 +31,7 @@ errors free) is reported by ``calibration.joint`` from the joint Fisher informat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -218,11 +218,17 @@ def elementary_jacobian(bench, space: LensSpace, poses) -> np.ndarray:
 
 
 def parameterise(bench, lens: Lens, tolerances, poses, keep_threshold: float = 0.1,
-                 max_directions: int | None = None) -> LensParameterisation:
+                 max_directions: int | None = None, as_designed: bool = False) -> LensParameterisation:
     """theta for ``lens`` under ``tolerances`` over the working range ``poses`` (P, 6):
     the right-singular directions of the whitened prior-scaled Jacobian whose singular
-    value exceeds keep_threshold (at most max_directions)."""
+    value exceeds keep_threshold (at most max_directions). as_designed: the lens known as
+    designed: no directions, and theta's (empty) origin is the design itself, not the
+    tolerance model's mean as-built lens (which a model with systematic deviations, e.g.
+    the print's shrinkage, moves off the design)."""
     space = lens_space(lens, tolerances)
+    if as_designed:
+        space = replace(space, mean=np.zeros_like(space.mean))
+        max_directions = 0
     J = elementary_jacobian(bench, space, poses)
     _, s, Vt = np.linalg.svd(J.reshape(-1, space.size), full_matrices=False)
     k = int(np.sum(s > keep_threshold))

@@ -50,6 +50,7 @@ terms add as many pseudo-observations as unknowns); ``p_value`` is its upper tai
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,6 +117,29 @@ class JointCalibrationResult:
     n_traced: int
     parameterisation: LensParameterisation
     used: np.ndarray
+    gain_sigma: float = 0.0
+
+    @property
+    def k_lens(self) -> int:
+        return self.parameterisation.k
+
+    @property
+    def has_gain(self) -> bool:
+        return self.gain_sigma > 0
+
+    @property
+    def theta_lens(self) -> np.ndarray:
+        return self.theta[:self.k_lens]
+
+    @property
+    def sensor_gain(self) -> float:
+        """Estimated g: effective lenslet focal length / the bench's (1 without the gain)."""
+        return 1.0 + self.gain_sigma * float(self.theta[self.k_lens]) if self.has_gain else 1.0
+
+    @property
+    def sensor_gain_std(self) -> float:
+        """Posterior 1-sigma of g (0 without the gain)."""
+        return self.gain_sigma * float(np.sqrt(self.cov[12 + self.k_lens, 12 + self.k_lens])) if self.has_gain else 0.0
 
     @property
     def cov_X(self) -> np.ndarray:
@@ -127,7 +151,8 @@ class JointCalibrationResult:
 
     @property
     def cov_theta(self) -> np.ndarray:
-        return self.cov[12:, 12:]
+        """Covariance of the lens parameters (k_lens, k_lens)."""
+        return self.cov[12:12 + self.k_lens, 12:12 + self.k_lens]
 
     @property
     def theta_sigma(self) -> np.ndarray:
@@ -143,7 +168,7 @@ class JointCalibrationResult:
 
     @property
     def lens(self):
-        return self.parameterisation.build(self.theta)
+        return self.parameterisation.build(self.theta_lens)
 
     def summary(self) -> dict:
         """JSON-ready numbers: Z 1-sigma (mm, deg), chi2 test, theta and its identifiability."""
@@ -152,7 +177,9 @@ class JointCalibrationResult:
         return {"Z_sigma_mm": dz[:3].tolist(), "Z_sigma_deg": np.degrees(dz[3:]).tolist(),
                 "Z_sigma_known_lens_mm": dk[:3].tolist(), "Z_sigma_known_lens_deg": np.degrees(dk[3:]).tolist(),
                 "chi2": self.chi2, "dof": self.dof, "p_value": self.p_value, "mismatch": self.mismatch,
-                "theta": self.theta.tolist(), "theta_sigma": self.theta_sigma.tolist(),
+                "theta": self.theta_lens.tolist(), "theta_sigma": self.theta_sigma.tolist(),
+                **({"sensor_gain": self.sensor_gain, "sensor_gain_std": self.sensor_gain_std}
+                   if self.has_gain else {}),
                 "n_identifiable": int(self.identifiable.sum()), "iterations": self.iterations,
                 "converged": self.converged}
 
@@ -161,7 +188,7 @@ class JointProblem:
     """Residuals and Jacobians of the joint problem (see the module doc)."""
 
     def __init__(self, bench, param: LensParameterisation, z, A, T_SO_nominal, robot_cov, theta_prior: bool,
-                 measurement=None):
+                 measurement=None, gain_sigma: float = 0.0):
         self.bench = bench
         self.measurement = measurement  # what is measured (calibration.measurement; None: the Zernikes)
         self.param = param
@@ -169,7 +196,11 @@ class JointProblem:
         self.A = A
         self.Tn = T_SO_nominal
         self.n, self.m = z.shape
-        self.k = param.k
+        # the sensor's gain g = 1 + gain_sigma s (s ~ N(0, 1), theta's last entry): the effective
+        # lenslet focal length f (1 + gain_sigma s) scales every reported slope (module doc)
+        self.gain_sigma = float(gain_sigma)
+        self.k_lens = param.k
+        self.k = param.k + (1 if self.gain_sigma > 0 else 0)
         self.theta_prior = theta_prior
         LA = np.linalg.cholesky(robot_cov)
         self.WA = np.linalg.inv(LA)  # L_A^-1
@@ -184,8 +215,13 @@ class JointProblem:
         self.z, self.A = self.z[keep], self.A[keep]
         self.n = int(np.sum(keep))
 
+    def gain(self, theta) -> float:
+        """The sensor gain g of the state (1 without the gain parameter)."""
+        return 1.0 + self.gain_sigma * float(theta[self.k_lens]) if self.k > self.k_lens else 1.0
+
     def model(self, theta) -> ForwardModel:
-        key = np.asarray(theta, float).tobytes()
+        theta = np.asarray(theta, float)[:self.k_lens]
+        key = theta.tobytes()
         if key != self._model_key:
             self._model = ForwardModel(self.bench, self.param.build(theta), validate=False)
             if self.measurement is not None:
@@ -200,8 +236,9 @@ class JointProblem:
         B, x = pose_chain(self.A, X, Z, a, self.Tn)
         res = self.model(theta).evaluate(x, uv0=uv0, check_range=False)
         self.n_traced += self.n
-        r = (res.z - self.z) @ self.Li.T
-        return r, res.valid, B, x, res.uv, res.z
+        zm = self.gain(theta) * res.z
+        r = (zm - self.z) @ self.Li.T
+        return r, res.valid, B, x, res.uv, zm
 
     def cost(self, r, a, theta) -> float:
         c = float(np.sum(r * r)) + float(np.sum((a @ self.WA.T) ** 2))
@@ -211,15 +248,19 @@ class JointProblem:
         """Whitened dh/dx (n, m, 6): the optics' exact Jacobian, rays warm-started from uv."""
         J, _, _ = jacobian(self.model(theta), x, uv=uv)
         self.n_traced += JACOBIAN_EVALS * self.n
-        return np.einsum("ij,njp->nip", self.Li, J)
+        return self.gain(theta) * np.einsum("ij,njp->nip", self.Li, J)
 
     def jacobians(self, theta, x, uv):
         """Whitened dh/dx (n, m, 6) and dh/dtheta (n, m, k), exact, in one batched trace
         (``ForwardModel.jacobians`` with the parameterisation's lens tangents at theta)."""
-        lt = self.param.tangents(theta, self.bench.laser.wavelength_nm)
-        J, Jt, _ = self.model(theta).jacobians(x, uv0=uv, lens_tangents=lt)
+        lt = self.param.tangents(np.asarray(theta, float)[:self.k_lens], self.bench.laser.wavelength_nm)
+        J, Jt, res = self.model(theta).jacobians(x, uv0=uv, lens_tangents=lt)
         self.n_traced += JACOBIAN_EVALS * self.n
-        return np.einsum("ij,njp->nip", self.Li, J), np.einsum("ij,njp->nip", self.Li, Jt)
+        g = self.gain(theta)
+        S, Jt = g * np.einsum("ij,njp->nip", self.Li, J), g * np.einsum("ij,njp->nip", self.Li, Jt)
+        if self.k > self.k_lens:  # d(g h)/ds = gain_sigma h
+            Jt = np.concatenate([Jt, self.gain_sigma * (res.z @ self.Li.T)[..., None]], axis=2)
+        return S, Jt
 
     def blocks(self, S, Jt, B, x, X):
         """Per-pose Jacobians: global (n, m, 12+k) and robot error (n, m, 6)."""
@@ -289,7 +330,8 @@ def _inv(S):
 def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, Z0, robot_cov, *,
                     theta0=None, theta_prior: bool = True, max_iter: int = 40, tol: float = _STEP_TOL,
                     alpha: float = 1e-3, theta_jacobian0=None,
-                    refresh_ratio: float = _REFRESH_RATIO, measurement=None) -> JointCalibrationResult:
+                    refresh_ratio: float = _REFRESH_RATIO, measurement=None,
+                    gain_sigma: float | None = None) -> JointCalibrationResult:
     """Joint ML/MAP estimate of X, Z, theta and the robot pose errors (module doc).
 
     bench: the optics bench; param: theta parameterisation; z: (n, m) measured Zernikes
@@ -305,7 +347,9 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     on them): theta_jacobian0: (n, m, k) whitened dh/dtheta near the start, e.g.
     ``LensParameterisation.theta_jacobian`` at the commanded poses (default: traced
     here); refresh_ratio: relinearise the iteration Jacobians when a step shrinks by
-    less than this factor.
+    less than this factor. gain_sigma: relative 1-sigma prior of the sensor's effective
+    lenslet focal length, estimated as a common gain on every reported value (theta's
+    last entry; default ``bench.sensor.focal_length_rel_sigma``; 0: known).
     """
     z = np.atleast_2d(np.asarray(z, dtype=float))
     A = np.asarray(A, dtype=float)
@@ -314,7 +358,12 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         raise CalibrationError(f"A: expected ({n}, 4, 4) flange poses (one per Zernike vector), got {A.shape}")
     if n < 3:
         raise CalibrationError(f"joint calibration: needs at least 3 poses, got {n}")
-    k = param.k
+    gain_sigma = float(bench.sensor.focal_length_rel_sigma if gain_sigma is None else gain_sigma)
+    if not (math.isfinite(gain_sigma) and gain_sigma >= 0):
+        raise CalibrationError(f"gain_sigma: expected a finite number >= 0, got {gain_sigma!r}")
+    if gain_sigma > 0:
+        theta_jacobian0 = None  # a lens-only start Jacobian has no gain column: traced here
+    k = param.k + (1 if gain_sigma > 0 else 0)
     if theta_jacobian0 is not None and np.shape(theta_jacobian0) != (n, z.shape[1], k):
         raise CalibrationError(f"theta_jacobian0: expected shape ({n}, {z.shape[1]}, {k}), "
                                f"got {np.shape(theta_jacobian0)}")
@@ -323,11 +372,12 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     Tn = np.asarray(T_SO_nominal, float)
     # poses the start model cannot light are left out (the pupil test is not differentiable)
     _, x0 = pose_chain(A, X, Z, np.zeros((n, 6)), Tn)
-    used = ForwardModel(bench, param.build(theta), validate=False).evaluate(x0, check_range=False).valid
+    used = ForwardModel(bench, param.build(theta[:param.k]), validate=False).evaluate(x0, check_range=False).valid
     if used.sum() < 3:
         raise CalibrationError(f"joint calibration: only {int(used.sum())} of {n} poses light the pupil at the "
                                "start; start closer (X0, Z0) or choose poses nearer nominal")
-    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior, measurement)
+    pb = JointProblem(bench, param, z[used], A[used], Tn, np.asarray(robot_cov, float), theta_prior, measurement,
+                      gain_sigma)
     n = int(used.sum())
     a = np.zeros((n, 6))
     r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a)
@@ -442,7 +492,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     return JointCalibrationResult(
         X=X, Z=Z, theta=theta, robot_errors=a, cov=cov, crlb_Z_known_lens=crlb_known, chi2=cost, dof=dof,
         p_value=float(chdtrc(dof, cost)), alpha=alpha, iterations=it, converged=converged,
-        n_traced=pb.n_traced, parameterisation=param, used=used)
+        n_traced=pb.n_traced, parameterisation=param, used=used, gain_sigma=gain_sigma)
 
 
 def simulate_joint_data(bench, param: LensParameterisation, theta, A_true, X, Z, T_SO_nominal, rng=None):

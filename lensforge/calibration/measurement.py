@@ -411,7 +411,7 @@ def canonical_ids(poses, wfs, reference_pose=None):
     return poses, wfs, ref
 
 
-def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-3, progress=None):
+def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-3, progress=None, gain_sigma=None):
     """CalibrationResult of a session whose measurements are relative to a user reference
     taken at pose ``data.measurement.reference`` (``referenced_calibrate`` from the cell's
     nominal X, Z; theta from the tolerance model as the joint method's; tolerances "none" or
@@ -424,6 +424,10 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
     from .session_joint import JointFrames
     from .session_result import CalibrationResult
 
+    if (data.model.bench.sensor.focal_length_rel_sigma if gain_sigma is None else gain_sigma) > 0:
+        raise ConfigError("sensor.focal_length_rel_sigma: the focal-length gain is not estimated from data "
+                          "relative to a user reference (not implemented); set it to 0 for this session, or "
+                          "record against the factory reference")
     known = no_tolerance_model(tolerances)  # no prior: the lens as designed (theta has no direction)
     tol, tol_label = resolve_tolerances("default" if known else tolerances)
     model, scene = data.model, data.scene
@@ -431,7 +435,7 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
     base = Measurement(meas.kind, meas.lenslets, meas.dropped)
     Tn = scene.T_SO_nominal
     x_start = matrix_to_pose(invert_poses(Tn) @ invert_poses(scene.Z) @ data.A @ scene.X)
-    param = parameterise(model.bench, model.lens, tol, x_start, max_directions=0 if known else None)
+    param = parameterise(model.bench, model.lens, tol, x_start, as_designed=known)
     res = referenced_calibrate(model.bench, param, data.z, data.A, meas.reference, Tn, scene.X, scene.Z,
                                scene.noise.cov, meas=base)
     p = float(chdtrc(res.dof, res.chi2))

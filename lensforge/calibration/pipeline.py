@@ -73,7 +73,7 @@ def run(data: SessionData, method: str = "joint", **options) -> CalibrationResul
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
     if data.measurement is not None and data.measurement.reference is not None:
-        keep = ("outlier_alpha", "progress", "tolerances")
+        keep = ("outlier_alpha", "progress", "tolerances", "gain_sigma")
         return referenced_session(data, **{k: v for k, v in options.items() if k in keep})
     return METHODS[method](data, **options)
 
@@ -204,6 +204,9 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
                      "noise model; the lens as built may differ from its design (a joint as-built calibration "
                      "estimates it) or the robot/sensor noise is larger than assumed; the reported 1-sigma are "
                      "then too small")
+    if data.model.bench.sensor.focal_length_rel_sigma > 0:
+        warns.append("the sensor's focal-length gain (sensor.focal_length_rel_sigma > 0) is estimated only by "
+                     "the joint method; the two-stage pipeline takes the bench's lenslet_focal_mm as exact")
     m_fit = float(np.median(est_chi2))
     if dof > 0 and m_fit > chi2_dist.ppf(0.999, dof) / dof:
         warns.append(f"lens-pose fits: median chi2/dof = {m_fit:.3g} over {dof} DOF: the measured wavefronts do "
@@ -228,13 +231,19 @@ def joint(data: SessionData, *, tolerances="default", start=two_stage, **kw) -> 
     tolerances: the tolerance model of the lens prior (Tolerances, "default", a TOML path;
     None or "none": the two-stage fallback); start: the start method (default
     ``two_stage``), or its CalibrationResult when already computed on the same data, or None
-    (the cell's nominal X, Z only); other keywords go to both methods where they apply
-    (outlier_alpha, progress)."""
+    (the cell's nominal X, Z only); gain_sigma: the prior of the sensor's focal-length gain
+    (default ``bench.sensor.focal_length_rel_sigma``; with a gain the joint fit runs even
+    when the lens is known, tolerances "none"); other keywords go to both methods where
+    they apply (outlier_alpha, progress)."""
     ts_kw = {k: v for k, v in kw.items() if k in ("outlier_alpha", "progress")}
-    if no_tolerance_model(tolerances):
+    gain_sigma = kw.get("gain_sigma")
+    gain_sigma = data.model.bench.sensor.focal_length_rel_sigma if gain_sigma is None else gain_sigma
+    known_lens = no_tolerance_model(tolerances)
+    if known_lens and not gain_sigma > 0:
         return _fallback(data, "no tolerance model for the as-built lens prior (tolerances: none)", start, **ts_kw)
-    try:
-        return joint_session(data, start=start, tolerances=tolerances, **ts_kw)
+    try:  # the lens known but the sensor's focal length free: the joint fit with no lens directions
+        return joint_session(data, start=start, tolerances="default" if known_lens else tolerances,
+                             known_lens=known_lens, gain_sigma=gain_sigma, **ts_kw)
     except CalibrationError as e:
         return _fallback(data, f"the joint fit failed: {e}", start, **ts_kw)
 

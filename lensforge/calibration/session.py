@@ -31,6 +31,7 @@ import numpy as np
 from ..asbuilt.lens_params import parameterise
 from ..asbuilt.tolerances import no_tolerance_model, resolve_tolerances
 from ..errors import CalibrationError, ConfigError, PoseRangeError
+from ..input_checks import BENCH_RANGES, number
 from ..optics.bench import Bench
 from ..optics.lens import Lens, LensSpec, resolve_lens
 from ..optics.sensitivity import metrics
@@ -255,7 +256,7 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
                              f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); shrink the box")
     # theta's directions over a sample of the working range (the joint fit re-derives them over its own poses)
     sub = cand[rng.choice(len(cand), min(len(cand), 32), replace=False)]
-    param = parameterise(bench, lens, tol, sub, max_directions=0 if lens_known else None)
+    param = parameterise(bench, lens, tol, sub, as_designed=lens_known)
     try:
         res = design_joint_poses(bench, param, scene, n, cand, robot_cov=robot.noise.cov, check_reach=True)
     except ConfigError as e:
@@ -403,7 +404,8 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
               robot: RobotModel | str | None = None, method: str = "joint",
               tolerances: Tolerances | str | PathLike[str] | None = "default", outlier_alpha: float = OUTLIER_ALPHA,
               progress: Callable[[int, int], None] | None = None, wfs_header: str = "error",
-              pose_pattern: str | None = None, reference_pose: str | None = None) -> CalibrationResult:
+              pose_pattern: str | None = None, reference_pose: str | None = None,
+              focal_length_sigma: float | None = None) -> CalibrationResult:
     """X and Z from a WFS export and the recorded flange poses (see the module docstring).
 
     Parameters
@@ -437,6 +439,9 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     reference_pose : str, optional
         The pose id of the user reference the measurements are relative to (default: the
         files' own ``reference_pose``, if any).
+    focal_length_sigma : float, optional
+        Relative 1-sigma prior of the sensor's effective lenslet focal length, estimated by
+        the joint method (default: the bench's ``sensor.focal_length_rel_sigma``; 0: known).
 
     Returns
     -------
@@ -453,6 +458,13 @@ def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsD
     """
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
+    if focal_length_sigma is not None:
+        focal_length_sigma = number(focal_length_sigma, "focal_length_sigma (--focal-length-sigma)",
+                                    BENCH_RANGES["sensor.focal_length_rel_sigma"])
+        if focal_length_sigma > 0 and method != "joint":
+            raise ConfigError(f"focal_length_sigma (--focal-length-sigma): the focal-length gain is estimated "
+                              f"only by the joint method, not {method}; use --method joint")
     data = match_session(design, measurements, robot_poses, bench=bench, robot=robot, wfs_header=wfs_header,
                          pose_pattern=pose_pattern, reference_pose=reference_pose)
-    return run(data, method, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances)
+    opts = {} if focal_length_sigma is None or method != "joint" else {"gain_sigma": focal_length_sigma}
+    return run(data, method, outlier_alpha=outlier_alpha, progress=progress, tolerances=tolerances, **opts)

@@ -37,7 +37,7 @@ from .joint import JointProblem, joint_calibrate
 from ..asbuilt.lens_params import parameterise
 from .session_result import OUTLIER_ALPHA, CalibrationResult, SessionData, robust_chi2_threshold, std_dict
 
-__all__ = ["JointFrames", "best_joint_fit", "joint_session"]
+__all__ = ["JointFrames", "best_joint_fit", "joint_session", "sensor_summary"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,29 +57,41 @@ class JointFrames:
 
 def _per_pose(bench, param, res, z, A, Tn, robot_cov, measurement=None):
     """(zernike chi2 (n,), robot chi2 (n,)) of the used poses at the estimate."""
-    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True, measurement)
+    pb = JointProblem(bench, param, z, A, Tn, robot_cov, True, measurement, res.gain_sigma)
     r = pb.residuals(res.X, res.Z, res.theta, res.robot_errors)[0]
     return np.sum(r * r, axis=1), np.sum((res.robot_errors @ pb.WA.T) ** 2, axis=1)
 
 
+def sensor_summary(bench, res) -> dict:
+    """The estimated sensor parameters of a joint fit with the focal-length gain: the
+    effective lenslet focal length (mm) with its 1-sigma, its prior, and whether the data
+    determine it (posterior 1-sigma below half the prior's)."""
+    f = float(bench.sensor.lenslet_focal_mm)
+    prior = f * res.gain_sigma
+    std = f * res.sensor_gain_std
+    return {"lenslet_focal_mm": f * res.sensor_gain, "lenslet_focal_std_mm": std,
+            "prior_lenslet_focal_mm": f, "prior_std_mm": prior, "identifiable": bool(std < 0.5 * prior)}
+
+
 def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, robot_cov, *, alpha: float = OUTLIER_ALPHA,
-                   params=None, measurement=None):
+                   params=None, measurement=None, known_lens: bool = False, gain_sigma: float | None = None):
     """(result, parameterisation, start index) of the best joint fit over ``starts``
     [(X0, Z0), ...] (module docstring): among the fits the chi2 test accepts, the one
     using most poses, then the lowest cost; if the test flags every fit, the lowest
     chi2/dof. theta is
     parameterised over the lens poses each start predicts unless ``params`` (one
-    LensParameterisation per start) is given. CalibrationError if no start gives a fit."""
+    LensParameterisation per start) is given (known_lens: no lens directions); gain_sigma:
+    the sensor gain's prior (``joint_calibrate``). CalibrationError if no start gives a fit."""
     best, error = None, None
     for i, (X0, Z0) in enumerate(starts):
         if params is None:
             x_start = matrix_to_pose(invert_poses(T_SO_nominal) @ invert_poses(Z0) @ A @ X0)
-            param = parameterise(bench, lens, tol, x_start)
+            param = parameterise(bench, lens, tol, x_start, as_designed=known_lens)
         else:
             param = params[i]
         try:
             res = joint_calibrate(bench, param, z, A, T_SO_nominal, X0, Z0, robot_cov, alpha=alpha,
-                                  measurement=measurement)
+                                  measurement=measurement, gain_sigma=gain_sigma)
         except CalibrationError as e:
             error = e
             continue
@@ -93,14 +105,16 @@ def best_joint_fit(bench, lens, tol: Tolerances, z, A, T_SO_nominal, starts, rob
 
 
 def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLIER_ALPHA, progress=None,
-                  tolerances="default") -> CalibrationResult:
+                  tolerances="default", known_lens: bool = False, gain_sigma: float | None = None) -> CalibrationResult:
     """Joint as-built calibration of a matched session (module docstring).
 
     start: a calibration method (SessionData -> CalibrationResult, e.g.
     ``pipeline.two_stage``) or its result on the same data, whose X, Z start the fit
     (None: the cell's nominal X, Z only);
     tolerances: the tolerance model of theta's prior ("default": the package's file,
-    a TOML path or Tolerances); recorded in the result."""
+    a TOML path or Tolerances); recorded in the result; known_lens: the lens as designed
+    (no lens directions; for a fit of the sensor's gain alone); gain_sigma: the prior of the
+    sensor's focal-length gain (default ``bench.sensor.focal_length_rel_sigma``)."""
     tol, tol_label = resolve_tolerances(tolerances)
     if tol is None:
         raise CalibrationError("joint calibration: no tolerance model for the as-built lens prior")
@@ -129,11 +143,12 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
     for attempt in range(2):
         if attempt == 0:
             res, param, i_best = best_joint_fit(bench, lens, tol, data.z, data.A, Tn, starts, robot_cov,
-                                                alpha=outlier_alpha, measurement=data.measurement)
+                                                alpha=outlier_alpha, measurement=data.measurement,
+                                                known_lens=known_lens, gain_sigma=gain_sigma)
         else:  # outliers left out: refit from the estimate (the basin is found), same theta directions
             res, param, _ = best_joint_fit(bench, lens, tol, data.z[keep], data.A[keep], Tn, [(res.X, res.Z)],
                                            robot_cov, alpha=outlier_alpha, params=[param],
-                                           measurement=data.measurement)
+                                           measurement=data.measurement, gain_sigma=gain_sigma)
         kept = np.flatnonzero(keep)
         for k in kept[~res.used]:
             rejected.append({"pose": str(ids[k]), "reason": "unlit in the joint fit: at its start, or at the "
@@ -164,12 +179,13 @@ def joint_session(data: SessionData, *, start=None, outlier_alpha: float = OUTLI
         warns.append(f"joint fit stopped after {res.iterations} iterations without meeting its tolerance")
     s = res.summary()
     names = [param.describe(i) for i in range(param.k)]
-    extra = {"tolerances": tol_label, "p_value": float(res.p_value), "outlier_threshold_zernike_chi2": thr,
+    extra = {"tolerances": "none" if known_lens else tol_label, "p_value": float(res.p_value), "outlier_threshold_zernike_chi2": thr,
              "n_zernike_modes": int(m),
              "lens_parameters": {"theta": s["theta"], "theta_sigma": s["theta_sigma"], "directions": names,
                                  "identifiable": [names[i] for i in np.flatnonzero(res.identifiable)],
                                  "n_identifiable": s["n_identifiable"],
                                  "units": "prior sigma of the tolerance model (prior N(0, 1))"},
+             **({"sensor": sensor_summary(bench, res)} if res.has_gain else {}),
              "Z_std_known_lens": std_dict(np.sqrt(np.diag(res.crlb_Z_known_lens))),
              "iterations": res.iterations, "converged": bool(res.converged), "start": start_names[i_best]}
     frames = JointFrames(X=res.X, Z=res.Z, cov_X=res.cov_X, cov_Z=res.cov_Z, joint=res)

@@ -162,6 +162,12 @@ class CalibrationResult:
         if lp is not None:
             lines.append(f"as-built lens: {len(lp['theta'])} parameters from {self.extra['tolerances']}, "
                          f"{lp['n_identifiable']} identified by the data (1-sigma < half the prior)")
+        sp = self.extra.get("sensor")
+        if sp is not None:
+            lines.append(f"sensor: effective lenslet focal length {sp['lenslet_focal_mm']:.4f} +- "
+                         f"{sp['lenslet_focal_std_mm']:.4f} mm (prior {sp['prior_lenslet_focal_mm']:.4f} +- "
+                         f"{sp['prior_std_mm']:.4f} mm" + ("" if sp["identifiable"] else "; not identified by the data")
+                         + ")")
         for name, frame in (("Z = ^W T_S (sensor in the robot base)", "Z"), ("X = ^E T_O (lens in the flange)", "X")):
             f = d[frame]
             s = f["std"]

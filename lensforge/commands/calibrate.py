@@ -72,6 +72,11 @@ def calibrate_cmd(
                                         "('default': the package's file; 'none': no prior, the two-stage "
                                         "pipeline is used with a warning); recorded in calibration.json"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
+    focal_length_sigma: Optional[float] = typer.Option(
+        None, "--focal-length-sigma", help="relative 1-sigma prior of the sensor's effective lenslet focal "
+                                           "length, estimated with X and Z by the joint method and reported "
+                                           "(default: the bench's sensor.focal_length_rel_sigma, 0 = known; "
+                                           "e.g. 0.01 for the device's own MLA data)"),
     wfs_header: str = typer.Option("error", "--wfs-header",
                                    help="when the WFS file's header (wavelength, pupil) contradicts the bench: "
                                         "error (default), file (use the file's values) or bench (the bench's)"),
@@ -97,7 +102,8 @@ def calibrate_cmd(
         try:
             res = calibrate(design, measurements, robot_poses, bench=bench_arg(bench), robot=robot, method=method,
                             tolerances=tolerances, progress=bar.update, wfs_header=wfs_header,
-                            pose_pattern=pose_pattern, reference_pose=reference_pose)
+                            pose_pattern=pose_pattern, reference_pose=reference_pose,
+                            focal_length_sigma=focal_length_sigma)
         except CalibrationError as e:  # too few lens poses to fit: the same convention mistakes are the usual cause
             explain_no_fit(e, design, measurements, robot_poses, bench, robot, method, tolerances, wfs_header)
             raise

@@ -93,6 +93,14 @@ class Sensor:
     window, against the factory reference; issue 21); camera_offset_px: the camera pixel
     grid's offset from the lenslet array along x and y (ASSUMPTION 1/3 px: not known; 0
     puts the central row's and column's reference spots on pixel corners, a placement tie).
+    focal_length_rel_sigma: relative 1-sigma uncertainty of the effective lenslet focal
+    length (the software divides each spot displacement by its calibrated f, so a true f
+    off by a fraction e scales every reported slope by 1 + e). 0 (default): f is known;
+    > 0: the joint calibration estimates the gain with this prior (about
+    ``lenslet_focal_mm``, the device's value when the user gives it) and reports the
+    effective focal length with its 1-sigma. ASSUMPTION: no datasheet gives the MLA's
+    calibration uncertainty; 0.01 is a cautious value for a device's own MLA data, 0.1
+    for the unsourced 5.2 mm default (4.1-6.7 mm quoted for 150 um MLAs).
     validated_slope_mrad: largest lenslet slope component at which the sensor model (what a
     lenslet reports, ``centroid.py``) is trusted; designs keep every pupil lenslet within it
     over their working range and calibration plan. ASSUMPTION 200 mrad (a spot then walks
@@ -116,6 +124,7 @@ class Sensor:
     crosstalk: str = "none"
     camera_offset_px: float = 1.0 / 3.0
     validated_slope_mrad: float = 200.0
+    focal_length_rel_sigma: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -222,7 +231,7 @@ _POSITIVE = {
 SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
 CROSSTALK_MODELS = ("none", "neighbours")
 _NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
-           "sensor.centroid_threshold", "sensor.validated_slope_mrad"}
+           "sensor.centroid_threshold", "sensor.validated_slope_mrad", "sensor.focal_length_rel_sigma"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
 
 
