@@ -307,7 +307,7 @@ def handeye_cmd(
         info(f"wrote {save_figure(plot_handeye_residuals(res.residuals, res.residual_chi2, title), plot)}")
     if json_out:
         emit_json(result)
-    end_on_failed_check(valid, mc.reason, res.chi2_dof, accept_failed_check,
+    end_on_failed_check(valid, None if mc is None else mc.reason, res.chi2_dof, accept_failed_check,
                         mistake=None if mistake is None else mistake["message"],
                         unexplained=("the residuals exceed the given noise model; none of the usual mistakes "
                                      "(units, inverted A or B, A and B swapped) explains it; check the noise model "
