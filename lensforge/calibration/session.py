@@ -42,7 +42,7 @@ from .joint_design import candidate_information, design_joint_poses
 from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
 from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
-                           check_wfs_values, job_memory_bytes, pose_file_kind)
+                           check_wfs_values, job_memory_bytes, pose_file_kind, MAX_ROWS)
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, std_dict
 
@@ -357,13 +357,13 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     (default: the files' own ``reference_pose``; ``measurement.referenced_session``).
     Implausible inputs are refused first (``plausibility``): an all-zero or constant WFS
     file, header values that contradict the bench (wfs_header: "error", "file" or "bench"),
-    flange poses beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
+    flange poses beyond the robot's reach, more than ``plausibility.MAX_ROWS`` rows in a file or ``plausibility.MAX_POSES`` matched poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     wfs = _as_table(measurements, lambda p: formats.read_wfs(p, pose_pattern=pose_pattern))
     poses = _as_table(robot_poses, formats.read_robot_poses)
-    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
-    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
+    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows", MAX_ROWS)
+    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows", MAX_ROWS)
     units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
     check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
     poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
@@ -384,7 +384,9 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    A = poses.T[[poses.ids.index(i) for i in common]]
+    check_poses_count(len(common), f"{wfs.source} and {poses.source}: matched poses")
+    at = [poses.ids.index(i) for i in common]
+    A = poses.T[at]
     meas = None
     if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
         b = spot_bench(bench, wfs)
