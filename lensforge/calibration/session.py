@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from os import PathLike
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -37,6 +37,7 @@ from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
 from . import formats, thorlabs
+from .cell_plausibility import check_cell_poses
 from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
 from .joint_design import candidate_information, design_joint_poses
 from .pipeline import METHODS, estimate_one, run
@@ -357,7 +358,9 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     (default: the files' own ``reference_pose``; ``measurement.referenced_session``).
     Implausible inputs are refused first (``plausibility``): an all-zero or constant WFS
     file, header values that contradict the bench (wfs_header: "error", "file" or "bench"),
-    flange poses beyond the robot's reach, more than ``plausibility.MAX_ROWS`` rows in a file or ``plausibility.MAX_POSES`` matched poses."""
+    flange poses beyond the robot's reach or that the cell's nominal sensor and grasp put far
+    from the sensor (``cell_plausibility.check_cell_poses``), more than
+    ``plausibility.MAX_ROWS`` rows in a file or ``plausibility.MAX_POSES`` matched poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     wfs = _as_table(measurements, lambda p: formats.read_wfs(p, pose_pattern=pose_pattern))
@@ -387,6 +390,11 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     check_poses_count(len(common), f"{wfs.source} and {poses.source}: matched poses")
     at = [poses.ids.index(i) for i in common]
     A = poses.T[at]
+    # the matched poses only: a robot log may hold home and approach poses that have no measurement
+    check_cell_poses(replace(poses, ids=tuple(common), T=A, rows=tuple(poses.rows[k] for k in at)
+                             if len(poses.rows) == len(poses.ids) else (), times=None),
+                     robot_scene(robot, bench.placement.distance_mm), bench,
+                     robot_poses if isinstance(robot_poses, (str, PathLike)) else (poses.source or None))
     meas = None
     if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
         b = spot_bench(bench, wfs)
