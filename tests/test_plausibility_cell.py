@@ -213,3 +213,53 @@ def test_only_matched_poses_are_checked(perfect_sessions, tmp_path, monkeypatch,
     assert code == 0, err[-2000:]
     d = json.loads((tmp_path / "out" / "calibration.json").read_text())
     assert any(str(r["pose"]) == "99" for r in d["poses_rejected"]), d["poses_rejected"]
+
+
+# ----------------------------------------------------------------------------- properties (hypothesis)
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_unit = st.floats(-1.0, 1.0)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(x=st.lists(_unit, min_size=6, max_size=6), cell=st.lists(_unit, min_size=12, max_size=12),
+       robot=st.sampled_from(["kr10_r1100_sixx", "ur5e"]), seed=st.integers(0, 2**16))
+def test_any_honest_pose_is_accepted(x, cell, robot, seed):
+    """Any lens pose of the plan's box, in a true cell off the nominal one by up to 4 sigma of every
+    CAD and grasp error, recorded with the robot's noise."""
+    lens, bench = load_design_lens(LENS)
+    scene = robot_scene(load_robot(robot), bench.placement.distance_mm)
+    xv = np.array(x) * ([0.5] * 3 + [math.radians(5.0)] * 3)
+    c = 4 * np.array(cell)
+    X = scene.X @ pose_to_matrix(c[:6] * InitialPoseModel().sigma)
+    Z = scene.Z @ pose_to_matrix(c[6:] * np.array([SENSOR_CAD_TRANSLATION_MM] * 3 + [SENSOR_CAD_ROTATION_RAD] * 3))
+    A = Z @ scene.T_SO_nominal @ pose_to_matrix(xv) @ np.linalg.inv(X)
+    A = A @ pose_to_matrix(scene.noise.sample(np.random.default_rng(seed), 1)[0])
+    assert implausible_cell_poses(A[None], scene, bench) == []
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(direction=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 0.1),
+       scale=st.floats(1.05, 1e4), turn=st.booleans())
+def test_any_pose_beyond_the_limits_is_refused(nominal, direction, scale, turn):
+    """A pose moved by more than the limit (in {S}) or turned by more than it: refused, one line
+    naming the file and the pose."""
+    bench, scene, A = nominal
+    t_lim, r_lim = cell_limits(bench)
+    d = np.array(direction) / np.linalg.norm(direction)
+    T = np.eye(4)
+    if turn:  # about the lens origin, by more than the limit (at most half a turn)
+        T = pose_to_matrix(np.r_[0, 0, 0, d * min(math.pi, r_lim * max(scale, 1.3))])  # 1.3: beyond the fixture's 8 deg
+        T = scene.Z @ scene.T_SO_nominal @ T @ np.linalg.inv(scene.Z @ scene.T_SO_nominal)
+    else:  # a move whose largest component (off or along the axis) exceeds the limit
+        v = d * t_lim * scale
+        v *= max(1.0, 1.01 * t_lim / max(math.hypot(v[0], v[1]), abs(v[2])))
+        T[:3, 3] = scene.Z[:3, :3] @ v
+    A = A.copy()
+    A[6] = T @ A[6]
+    if turn and r_lim * max(scale, 1.3) > math.pi:  # more than half a turn is a turn the other way
+        return
+    msg = _refused(_table(A), scene, bench)
+    assert msg.startswith("r.csv: pose 7 (row 8): "), msg
