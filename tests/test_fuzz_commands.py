@@ -194,3 +194,18 @@ def test_budget_with_a_spoiled_tolerance_file(tmp_path_factory, where, value):
     assert_clean(code, err)
     if code != 0:
         assert not (tmp / "bu").exists() or not [x for x in os.listdir(tmp / "bu") if not x.startswith(".")]
+
+
+@pytest.mark.parametrize("where, value", [
+    (("ik_seeds_deg", 0, 0), 10**400), (("ik_seeds_deg", 0, 1), math.nan), (("reach_mm",), 10**400),
+    (("repeatability_mm",), -10**400), (("joints", 0, "limits_deg", 0), 10**400),
+    (("cell", "sensor_xyzabc", 0), 10**400),
+])
+def test_robot_file_numbers_beyond_floats_are_refused(tmp_path, where, value):
+    """What the fuzzing of simulate-session found: a TOML integer beyond the float range (or a NaN
+    IK seed) in the robot file raised OverflowError (a traceback); now one short line naming the field."""
+    robot = _toml_file(tmp_path / "robot.toml", ROBOT_DOC, value, where)
+    code, _, err = cli("plan", BENCH_LENS, "--robot", robot, "-n", "6", "-t", "none", "-o", tmp_path / "plan")
+    assert_clean(code, err)
+    line = err.rstrip().splitlines()[-1]
+    assert code == 2 and where[0] in line and len(line) < 200, line
