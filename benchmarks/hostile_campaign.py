@@ -437,6 +437,14 @@ def record_f(name, args, cwd, expect, words=(), timeout=600):
                     "stderr": err[-800:]})
 
 
+def _shift(dx, dy, dz):
+    import numpy as np
+
+    T = np.eye(4)
+    T[:3, 3] = dx, dy, dz
+    return T
+
+
 def part_f(rnd: random.Random, n_signals: int = 8):
     import numpy as np
 
@@ -472,14 +480,20 @@ def part_f(rnd: random.Random, n_signals: int = 8):
         mistakes = {
             "quaternion mm under units m": (cal(r=_write(t / "r1.csv", formats.quaternion_csv(ids, T).replace(
                 "# units: mm", "# units: m"))), "refused", ("reach", "# units: m")),
-            "metres under units mm": (cal(r=_write(t / "r2.csv", formats.quaternion_csv(ids, Tm))), "failed check",
-                                      ("read in m",)),
+            # robot-file mistakes put the lens far from the nominal cell's sensor: refused before fitting
+            # (cell_plausibility), the re-read named; a fit that ran anyway fails its check naming it
+            "metres under units mm": (cal(r=_write(t / "r2.csv", formats.quaternion_csv(ids, Tm))),
+                                      "refused or failed", ("read in m",)),
             "ABC in radians": (cal(r=_write(t / "r3.csv", "pose,X,Y,Z,A,B,C\n" + "\n".join(
                 ",".join([i] + [f"{v:.6f}" for v in r[:3]] + [f"{v:.9f}" for v in np.radians(r[3:])])
-                for i, r in zip(ids, xyz)) + "\n")), "failed check", ("radians",)),
+                for i, r in zip(ids, xyz)) + "\n")), "refused or failed", ("radians",)),
             "quaternion xyzw": (cal(r=_write(t / "r4.csv", "# units: mm\npose,x,y,z,qw,qx,qy,qz\n" + "\n".join(
                 ",".join([i] + [f"{v:.6f}" for v in a[:3, 3]] + [f"{v:.10f}" for v in qq[[1, 2, 3, 0]]])
-                for i, a, qq in zip(ids, T, q)) + "\n")), "failed check", ("x, y, z, w",)),
+                for i, a, qq in zip(ids, T, q)) + "\n")), "refused or failed", ("x, y, z, w",)),
+            "one pose 200 mm off": (cal(r=_write(t / "r6.csv", formats.quaternion_csv(ids, np.concatenate(
+                [T[:1] @ _shift(0, 0, 200.0), T[1:]])))), "refused", ("pose " + ids[0], "re-record")),
+            "poses in another base frame": (cal(r=_write(t / "r7.csv", formats.quaternion_csv(ids, _shift(
+                0, 200.0, 0)[None] @ T))), "refused", ("base frame", "[cell]")),
             "WFS in Noll order": (cal(w=wfile("w1.csv", zn)), "failed check", ("Noll order",)),
             "WFS in waves": (cal(w=wfile("w2.csv", z / 0.532)), "failed check", ("waves",)),
             "WFS signs flipped": (cal(w=wfile("w3.csv", -z)), "failed check", ("signs",)),
@@ -535,6 +549,15 @@ def part_f(rnd: random.Random, n_signals: int = 8):
                                                      "0", "-o", t / "st"], ("100000",)),
                  "calibrate 100000 rows": (cal(r=big_rows), ("100000",)),
                  "plan -n 100000": (["plan", lens, "-n", "100000", "-o", t / "pl"], ("100000",)),
+                 "plan -n 1500": (["plan", lens, "-n", "1500", "-o", t / "pl"], ("1500", "3 .. 100")),
+                 "study --poses 1500": (["study", lens, "--poses", "1500", "-n", "1", "--workers", "0", "-o",
+                                         t / "st"], ("1500", "3 .. 100")),
+                 "budget --poses 1500": (["budget", lens, "--poses", "1500", "-n", "1", "--workers", "0", "-o",
+                                          t / "bu"], ("1500", "3 .. 100")),
+                 "calibrate 1500 matched poses": (cal(w=_write(t / "w1500.csv", formats.wfs_csv(
+                     [str(i) for i in range(1500)], np.repeat(z[:1], 1500, 0) + 1e-3 * np.arange(1500)[:, None],
+                     hdr)), r=_write(t / "r1500.csv", formats.quaternion_csv(
+                         tuple(str(i) for i in range(1500)), np.repeat(T[:1], 1500, 0)))), ("1500", "matched")),
                  "simulate-session -n 100000": (["simulate-session", lens, "-n", "100000", "-o", t / "s1"],
                                                 ("100000",)),
                  "design with 1e6 coefficients: evaluate": (["evaluate", big_design], ("1000000",)),

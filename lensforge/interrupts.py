@@ -180,9 +180,11 @@ def sigint_guard(grace_s: float = 1.2):
     (unwound the same way, so staged outputs are removed; exit 143 with ``error: terminated``);
     yields a callable telling whether one arrived. Does nothing outside the main thread (signal
     handlers live there); SIGINT ignored by the caller (nohup, `cmd &`) stays ignored, and so
-    does an ignored SIGTERM."""
+    does an ignored SIGTERM (a SIGTERM that is not ignored is handled even then: a background job
+    or a batch scheduler ignores Ctrl-C, and its SIGTERM ended the command silently)."""
+    int_ignored = signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # the caller chose to ignore Ctrl-C
     if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):  # the caller chose to ignore Ctrl-C (nohup, `cmd &`)
+            or (int_ignored and signal.getsignal(signal.SIGTERM) is signal.SIG_IGN)):
         yield lambda: False
         return
     st = _State(grace_s)
@@ -212,14 +214,15 @@ def sigint_guard(grace_s: float = 1.2):
         threading.Thread(target=st.watchdog, name="lensforge-sigint-watchdog", daemon=True).start()
         raise Terminated() if signum == signal.SIGTERM else Interrupted()
 
-    old = signal.signal(signal.SIGINT, handler)
+    old = None if int_ignored else signal.signal(signal.SIGINT, handler)
     old_term = signal.getsignal(signal.SIGTERM)
     if old_term is not signal.SIG_IGN:
         signal.signal(signal.SIGTERM, handler)
     try:
         yield lambda: st.count > 0
     finally:
-        signal.signal(signal.SIGINT, old)
+        if not int_ignored:
+            signal.signal(signal.SIGINT, old)
         if old_term is not signal.SIG_IGN:
             signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)
 

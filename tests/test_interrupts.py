@@ -98,6 +98,24 @@ def test_sigterm_unwinds_like_ctrl_c(to):
     assert "unwound" in out
 
 
+def test_sigterm_is_handled_when_ctrl_c_is_ignored():
+    """A background job (`cmd &` in a script) or a batch scheduler ignores SIGINT: Ctrl-C stays
+    ignored, but SIGTERM still unwinds with 'error: terminated' and 143 (it once killed silently)."""
+    body = "import time\n        try:\n            time.sleep(60)\n        finally:\n            print('unwound', flush=True)"
+    p = subprocess.Popen([sys.executable, "-c", _PROG.format(body=body)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    assert _child_pid(p) == p.pid  # unsupervised: SIGINT is ignored
+    time.sleep(0.2)
+    p.send_signal(signal.SIGINT)
+    time.sleep(0.3)
+    assert p.poll() is None  # still ignored
+    p.send_signal(signal.SIGTERM)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 143 and err == "error: terminated\n", (p.returncode, err)
+    assert "unwound" in out
+
+
 def test_sigkill_of_the_command_is_one_line_not_a_traceback():
     """signal.signal(SIGKILL, ...) raises OSError: the supervisor once printed a traceback here."""
     p = _start("os.kill(os.getpid(), 9)")

@@ -66,42 +66,43 @@ def test_false_alarm_rate_on_honest_sessions(perfect_sessions):
     assert min(p_values) > 1e-4  # honest p-values are uniform: none this small in 5
 
 
-def _spoil_units(paths, tmp_path):
-    """The session's robot poses in metres under a '# units: mm' header (issue 23's case 2)."""
-    poses = formats.read_robot_poses(paths["robot_poses.csv"])
-    T = poses.T.copy()
-    T[:, :3, 3] /= 1000.0
-    f = tmp_path / "flange_m_as_mm.csv"
-    f.write_text(formats.quaternion_csv(poses.ids, T, units="mm"))
+def _spoil_waves(paths, tmp_path):
+    """The session's coefficients in waves (at 532 nm) instead of um (issue 23's mistake table). A
+    robot-file mistake (m under '# units: mm') no longer reaches the fit: the cell check refuses
+    it first (tests/test_plausibility_cell.py)."""
+    wfs = formats.read_wfs(paths["wfs_zernike.csv"])
+    f = tmp_path / "wfs_in_waves.csv"
+    f.write_text(formats.wfs_csv(wfs.ids, wfs.zernike / 0.532, wfs.header))
     return f
 
 
 def test_calibrate_exits_3_with_diagnostics_and_no_cell_file(perfect_sessions, tmp_path, monkeypatch, capsys):
     paths = perfect_sessions[0]
-    bad = _spoil_units(paths, tmp_path)
+    bad = _spoil_waves(paths, tmp_path)
     out = tmp_path / "cal"
     out.mkdir()
     (out / "easy_handeye.yaml").write_text("stale: an earlier run's calibration\n")
-    code, stdout, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", paths["wfs_zernike.csv"],
-                                          "-r", bad, "--method", "two-stage", "-o", out, "--json", "--no-progress")
+    code, stdout, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", bad, "-r",
+                                          paths["robot_poses.csv"], "--method", "two-stage", "-o", out, "--json",
+                                          "--no-progress")
     assert code == 3, err[-2000:]
     assert "Traceback" not in err
     last = err.rstrip().splitlines()[-1]
     assert last.startswith("error: model check failed (chi2/dof ") and [ln for ln in err.splitlines()
                                                                           if ln.startswith("error:")] == [last]
-    assert "read in m" in last and "# units: mm" in last, last  # the likely mistake, named
+    assert "read in waves" in last and "532 nm" in last, last  # the likely mistake, named
     assert not (out / "easy_handeye.yaml").exists()  # the stale one is gone too
     d = json.loads((out / "calibration.json").read_text())
     assert d["valid"] is False and "model check failed" in d["check_failure"]
     assert d["model_check"]["chi2_dof"] > d["model_check"]["threshold_chi2_dof"]
-    assert d["diagnosis"]["mistake"] == "robot units m" and d["diagnosis"]["passes"] is True
+    assert d["diagnosis"]["mistake"] == "zernike waves" and d["diagnosis"]["passes"] is True
     assert d["diagnosis"]["chi2_dof_after"] < threshold_chi2_dof(d["dof"])
     assert (out / "residuals.png").stat().st_size > 1000 and "NOT A CALIBRATION" in (out / "summary.txt").read_text()
     assert json.loads(stdout)["valid"] is False  # --json still reports, with the verdict
     # research: the flag writes the cell file and exits 0, the JSON keeps the verdict
-    code, _, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", paths["wfs_zernike.csv"],
-                                     "-r", bad, "--method", "two-stage", "-o", out, "--accept-failed-check",
-                                     "--no-progress")
+    code, _, err = run_cli_inprocess(monkeypatch, capsys, "calibrate", LENS, "-m", bad, "-r",
+                                     paths["robot_poses.csv"], "--method", "two-stage", "-o", out,
+                                     "--accept-failed-check", "--no-progress")
     assert code == 0, err[-2000:]
     assert (out / "easy_handeye.yaml").exists()
     assert json.loads((out / "calibration.json").read_text())["valid"] is False

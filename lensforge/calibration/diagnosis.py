@@ -39,7 +39,7 @@ from ..errors import LensforgeError
 from ..optics.zernike import noll_to_thorlabs
 from . import formats
 from .model_check import check_chi2
-from .plausibility import pose_file_kind
+from .cell_plausibility import robot_file_readings
 
 __all__ = ["Mistake", "Reading", "SESSION_MISTAKES", "WFS_MISTAKES", "candidate_readings",
            "diagnose_session", "diagnose_estimate", "SCREEN_GAIN", "Diagnosis"]
@@ -82,39 +82,9 @@ def _fin(v):
 # ----------------------------------------------------------------------------- pose-file readings
 
 
-def _scaled(poses: formats.PoseTable, k: float) -> formats.PoseTable:
-    T = poses.T.copy()
-    T[:, :3, 3] *= k
-    return replace(poses, T=T)
-
-
 def _pose_readings(poses: formats.PoseTable, path) -> list[Reading]:
-    kind, units = pose_file_kind(path)
-    name = Path(path).name
-    out = []
-    if kind in ("quaternion_csv", "json_4x4") and units in ("m", "mm"):
-        other = "mm" if units == "m" else "m"
-        where = "its `# units: {u}` line" if kind == "quaternion_csv" else 'its "units": "{u}"'
-        out.append(Reading(f"robot units {other}", f"the fit passes if the robot file {name} is read in {other}: "
-                           f"{where.format(u=units)} is probably wrong",
-                           poses=_scaled(poses, 1e-3 if units == "m" else 1e3)))
-    if kind == "xyzabc_csv":
-        out.append(Reading("robot units m", f"the fit passes if X, Y, Z of the robot file {name} are read in metres: "
-                           "the XYZABC CSV takes mm; multiply them by 1000", poses=_scaled(poses, 1e3)))
-        xyzabc = np.array([formats.matrix_to_xyzabc(T) for T in poses.T])  # the file's values (|B| < 90 deg)
-        if np.all(np.abs(xyzabc[:, 3:]) <= 2 * math.pi + 1e-9):  # angles that could be radians
-            xyzabc[:, 3:] = np.degrees(xyzabc[:, 3:])
-            T = formats.xyzabc_to_matrix(xyzabc)
-            out.append(Reading("robot angles rad", f"the fit passes if A, B, C of the robot file {name} are read in "
-                               "radians: the XYZABC CSV takes degrees (KUKA); convert them", poses=replace(poses, T=T)))
-    if kind == "quaternion_csv":
-        q = formats.matrix_to_quaternion(poses.T)  # the columns (qw, qx, qy, qz) as read, up to sign
-        for label, order in (("x, y, z, w", [3, 0, 1, 2]),):
-            T = formats.quaternion_to_matrix(poses.T[:, :3, 3], q[:, order])
-            out.append(Reading("quaternion xyzw", f"the fit passes if the quaternion columns of the robot file {name} "
-                               f"are read in {label} order: reorder them to the header's qw, qx, qy, qz",
-                               poses=replace(poses, T=T)))
-    return out
+    return [Reading(name, f"the fit passes if {condition}", poses=table)
+            for name, condition, table in robot_file_readings(poses, path)]
 
 
 # ----------------------------------------------------------------------------- WFS readings

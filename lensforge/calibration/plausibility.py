@@ -36,9 +36,15 @@ WFS_HEADER_MODES = ("error", "file", "bench")
 # factor 5 beyond either end is a typing or unit mistake.
 REPEATABILITY_RANGE_MM = (1e-3, 2.5)
 
-# Poses per calibration or study trial: a bench session has tens; the cost and memory of the
-# trace grow linearly (see job_memory_bytes). ASSUMPTION: 2000 is far beyond any real session.
-MAX_POSES = 2000
+# Poses per calibration, study trial or plan: a bench session has 12-50, and `lensforge plan`'s
+# working box holds ~150 lit candidates. Cost and memory grow linearly (job_memory_bytes); measured
+# on the paper bench (extended_polynomial, joint default, 1 core): 100 poses 33 s CPU / 0.71 GB,
+# 150 poses 47 s / 0.95 GB, a study trial of 300 poses 88 s / 1.6 GB, of 1500 poses over 100 s /
+# 3.2 GB. ASSUMPTION: more than 100 is a mistake, refused up front (a minute and a GB on bad input).
+MAX_POSES = 100
+# Rows of a robot-pose or WFS file (a robot log may hold many more rows than the matched poses);
+# reading and matching them is cheap, only the matched poses (MAX_POSES) are calibrated.
+MAX_ROWS = 2000
 REACH_MARGIN_MM = 100.0  # ASSUMPTION: reach data sheets round; a flange pose this far beyond is not a pose
 
 
@@ -249,7 +255,7 @@ def check_poses_count(n: int, option: str, limit: int = MAX_POSES) -> int:
     """A number of poses from 3 to ``limit``."""
     if not 3 <= n <= limit:
         raise ConfigError(f"{option}: {n} poses is outside 3 .. {limit} (a calibration needs at least 3; "
-                          f"more than {limit} is beyond any bench session and only exhausts memory)")
+                          f"more than {limit} is beyond any bench session and only costs minutes and gigabytes)")
     return n
 
 

@@ -121,21 +121,31 @@ def _rot(rpy_deg) -> np.ndarray:
     return Rotation.from_euler("xyz", rpy_deg, degrees=True).as_matrix()
 
 
+def _shown(v) -> str:
+    """repr(v), cut to 40 characters (a TOML integer may have 400 digits)."""
+    r = repr(v)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
 def _vec(d: dict, key: str, n: int, where: str, default=None) -> np.ndarray:
     v = d.get(key, default)
     try:
         a = np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         a = np.zeros(0)
     if v is None or a.shape != (n,) or not np.all(np.isfinite(a)):
-        raise ConfigError(f"{where}.{key}: expected {n} finite numbers, got {v!r}")
+        raise ConfigError(f"{where}.{key}: expected {n} finite numbers, got {_shown(v)}")
     return a
 
 
 def _num(d: dict, key: str, where: str, default=None, positive: bool = True) -> float:
     v = d.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (positive and v <= 0):
-        raise ConfigError(f"{where}.{key}: expected a {'positive ' if positive else ''}number, got {v!r}")
+    try:  # an integer beyond the float range (TOML allows 10**400) is no number either
+        ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(float(v))
+    except OverflowError:
+        ok = False
+    if not ok or (positive and v <= 0):
+        raise ConfigError(f"{where}.{key}: expected a {'positive ' if positive else ''}number, got {_shown(v)}")
     return float(v)
 
 
@@ -193,9 +203,9 @@ def robot_from_dict(d: dict, where: str = "robot") -> RobotModel:
     seeds = d.get("ik_seeds_deg", [[0, -90, 90, 0, 45, 0]])
     try:
         seeds = tuple(tuple(float(a) for a in s_) for s_ in seeds)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{where}.ik_seeds_deg: expected a list of 6-number lists") from None
-    if not seeds or any(len(s_) != 6 for s_ in seeds):
+    if not seeds or any(len(s_) != 6 or not all(math.isfinite(a) for a in s_) for s_ in seeds):
         raise ConfigError(f"{where}.ik_seeds_deg: expected a list of 6-number lists")
     cell = d.get("cell", {})
     if not isinstance(cell, dict):

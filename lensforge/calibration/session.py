@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from os import PathLike
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,12 +38,13 @@ from ..optics.sensitivity import metrics
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import from_thorlabs_vector
 from . import formats, thorlabs
+from .cell_plausibility import check_cell_poses
 from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
 from .joint_design import candidate_information, design_joint_poses
 from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
 from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
-                           check_wfs_values, job_memory_bytes, pose_file_kind)
+                           check_wfs_values, job_memory_bytes, pose_file_kind, MAX_ROWS)
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
 from .session_result import OUTLIER_ALPHA, SCHEMA_VERSION, CalibrationResult, SessionData, std_dict
 
@@ -253,7 +254,8 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     cand = cand[lit_mask(model, cand, lit_margin_mm)]
     if len(cand) < n:
         raise PoseRangeError(f"plan: only {len(cand)} candidate poses light the pupil in the working box "
-                             f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); shrink the box")
+                             f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); ask for at most "
+                             f"{len(cand)} poses")
     # theta's directions over a sample of the working range (the joint fit re-derives them over its own poses)
     sub = cand[rng.choice(len(cand), min(len(cand), 32), replace=False)]
     param = parameterise(bench, lens, tol, sub, as_designed=lens_known)
@@ -267,11 +269,13 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     for A in res.A:
         q = inverse_kinematics(A, robot, q0=q)
         joints.append(q)
-    # random plans of the same size from the same lit candidates, traced in one batch: RMS Z translation 1-sigma
-    xr = np.concatenate([cand[rng.choice(len(cand), n, replace=False)] for _ in range(n_random_sets)])
-    Ir = candidate_information(bench, param, scene, xr, robot.noise.cov)[0].reshape(n_random_sets, n, 12 + param.k,
-                                                                                    12 + param.k)
-    F = Ir.sum(axis=1)
+    # random plans of the same size from the same lit candidates: RMS Z translation 1-sigma. Each distinct
+    # candidate is traced once (a pose's information does not depend on the others), so the trace holds at
+    # most len(cand) poses whatever n_random_sets * n is (150-pose plans reached 3.3 GB tracing 750)
+    sets = np.array([rng.choice(len(cand), n, replace=False) for _ in range(n_random_sets)])
+    used, inverse = np.unique(sets, return_inverse=True)
+    Iu = candidate_information(bench, param, scene, cand[used], robot.noise.cov)[0]
+    F = Iu[inverse.reshape(sets.shape)].sum(axis=1)
     F[:, 12:, 12:] += np.eye(param.k)  # theta's N(0, I) prior
     rand = [float(np.sqrt(np.trace(np.linalg.pinv(f, hermitian=True)[6:9, 6:9]))) for f in F]
     cov = res.chosen["cov"]
@@ -353,13 +357,15 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     (default: the files' own ``reference_pose``; ``measurement.referenced_session``).
     Implausible inputs are refused first (``plausibility``): an all-zero or constant WFS
     file, header values that contradict the bench (wfs_header: "error", "file" or "bench"),
-    flange poses beyond the robot's reach, more than ``plausibility.MAX_POSES`` poses."""
+    flange poses beyond the robot's reach or that the cell's nominal sensor and grasp put far
+    from the sensor (``cell_plausibility.check_cell_poses``), more than
+    ``plausibility.MAX_ROWS`` rows in a file or ``plausibility.MAX_POSES`` matched poses."""
     lens, bench = load_design_lens(design, bench)
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     wfs = _as_table(measurements, lambda p: formats.read_wfs(p, pose_pattern=pose_pattern))
     poses = _as_table(robot_poses, formats.read_robot_poses)
-    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows")
-    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows")
+    check_poses_count(len(poses.ids), f"{poses.source or 'robot poses'}: rows", MAX_ROWS)
+    check_poses_count(len(wfs.ids), f"{wfs.source or 'WFS file'}: rows", MAX_ROWS)
     units = pose_file_kind(robot_poses)[1] if isinstance(robot_poses, (str, PathLike)) else None
     check_robot_reach(poses.T, robot, poses.source or "robot poses", poses.rows, units)
     poses, wfs, ref = canonical_ids(poses, wfs, reference_pose)
@@ -380,7 +386,14 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     if len(common) < 3:
         raise ConfigError(f"{wfs.source} and {poses.source}: field pose: only {len(common)} pose ids match "
                           f"(need >= 3); the ids of the two files must name the same poses")
-    A = poses.T[[poses.ids.index(i) for i in common]]
+    check_poses_count(len(common), f"{wfs.source} and {poses.source}: matched poses")
+    at = [poses.ids.index(i) for i in common]
+    A = poses.T[at]
+    # the matched poses only: a robot log may hold home and approach poses that have no measurement
+    check_cell_poses(replace(poses, ids=tuple(common), T=A, rows=tuple(poses.rows[k] for k in at)
+                             if len(poses.rows) == len(poses.ids) else (), times=None),
+                     robot_scene(robot, bench.placement.distance_mm), bench,
+                     robot_poses if isinstance(robot_poses, (str, PathLike)) else (poses.source or None))
     meas = None
     if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
         b = spot_bench(bench, wfs)

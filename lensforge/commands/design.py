@@ -96,6 +96,9 @@ def design(
         from ..asbuilt.tolerances import DEFAULT_TOLERANCES_FILE
         from ..design.selfcal import SelfCalSpec
 
+        from ..calibration.plausibility import check_poses_count
+
+        check_poses_count(selfcal_poses, "--selfcal-poses")
         selfcal = SelfCalSpec(load_tolerances(DEFAULT_TOLERANCES_FILE if selfcal_tolerances == "default"
                                               else selfcal_tolerances), n_poses=selfcal_poses,
                               plan_mm=plan_mm, plan_rad=math.radians(plan_deg))
