@@ -359,6 +359,9 @@ def read_export_folder(spec, pattern: str | None = None) -> dict:
         header["reference_pose"] = sorted(refs)[0]
     if any(r["header"].get("reference") == "user" for r in recs):
         header["reference"] = "user"
+    from .plausibility import check_not_all_zero
+
+    check_not_all_zero(z, str(spec))  # a file of zeros is named as such, before the tilt check
     check_tilt_not_cancelled(z[:, 1:3], str(spec), "Zernike tilt modes (Thorlabs 2, 3)",
                              any(r["header"].get("tilt_cancelled") for r in recs))
     return {"ids": tuple(ids), "zernike": z, "order": order, "header": header, "source": str(spec),
