@@ -78,3 +78,25 @@ def perfect_sessions(tmp_path_factory):
         s = simulate_session(lens, tolerances=None, seed=100 + seed, bench=bench, session_plan=p)
         out.append(formats.write_bundle(tmp_path_factory.mktemp(f"session{seed}"), s.files()))
     return out
+
+
+@pytest.fixture(scope="module")
+def polynomial_joint_setup():
+    """(bench, lens, scene, plan) of the joint-calibration tests: the paper's polynomial lens
+    (all six pose DOF observable per pose: a well conditioned joint problem) on the default
+    bench, the paper scene and the study's 12-pose plan."""
+    from lensforge.calibration.robot import paper_scene
+    from lensforge.optics.bench import Bench
+    from lensforge.optics.lens import paper_lens
+    from lensforge.verification.study import StudyConfig, calibration_plan
+
+    bench = Bench.default()
+    return bench, paper_lens("polynomial"), paper_scene(bench.placement.distance_mm), \
+        calibration_plan(StudyConfig(n_poses=12))
+
+
+def pose_error(T_true, T_est):
+    """The pose vector (mm, rad) of T_true^-1 T_est."""
+    from lensforge.optics.pose import matrix_to_pose
+
+    return matrix_to_pose(np.linalg.solve(T_true, T_est))

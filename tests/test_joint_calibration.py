@@ -8,26 +8,21 @@ that theta is small and the tests fast).
 
 import numpy as np
 import pytest
+from conftest import pose_error
 
 from lensforge.calibration.joint import joint_calibrate, pose_chain, simulate_joint_data
 from lensforge.asbuilt.lens_params import lens_space, parameterise
 from lensforge.asbuilt.tolerances import Tolerances
-from lensforge.optics.bench import Bench
-from lensforge.optics.lens import paper_lens
-from lensforge.optics.pose import matrix_to_pose, pose_to_matrix
-from lensforge.calibration.robot import flange_pose, paper_scene
+from lensforge.optics.pose import pose_to_matrix
+from lensforge.calibration.robot import flange_pose
 from lensforge.verification.study import StudyConfig, calibration_plan
 
 TOL = Tolerances(form_modes=(4, 5, 6, 7, 8))
 
 
 @pytest.fixture(scope="module")
-def setup():
-    bench = Bench.default()
-    lens = paper_lens("polynomial")
-    scene = paper_scene(bench.placement.distance_mm)
-    plan = calibration_plan(StudyConfig(n_poses=12))
-    return bench, lens, scene, plan
+def setup(polynomial_joint_setup):
+    return polynomial_joint_setup
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +31,7 @@ def param(setup):
     return parameterise(bench, lens, TOL, plan, max_directions=3)
 
 
-def _err(T_true, T_est):
-    return matrix_to_pose(np.linalg.solve(T_true, T_est))
+_err = pose_error
 
 
 def test_space_reproduces_nominal_and_mean(setup):
