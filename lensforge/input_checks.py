@@ -211,7 +211,7 @@ BENCH_RANGES = {
     "sensor.subaperture_quadrature": Num(1, 16, "(rays per lenslet side)", integer=True),  # n^2 rays per lenslet
     "sensor.centroid_window_px": Num(0, 4096, "px", integer=True),
     "sensor.centroid_threshold": Num(0.0, 0.999, "(fraction of the spot peak)"),
-    "sensor.focal_length_rel_sigma": Num(0.0, 0.5, "(relative 1-sigma)"),
+    "sensor.focal_length_rel_sigma": Num(0.0, 0.5, "relative 1-sigma"),
     "noise.slope_sigma_urad": Num(0.0, 1e5, "urad", lo_open=True),
     "pose_limits.translation_mm": Num(0.0, 100.0, "mm", lo_open=True),
     "pose_limits.rotation_rad": Num(0.0, math.pi / 2, "rad", lo_open=True),
