@@ -475,8 +475,7 @@ def read_wfs_csv(path) -> WfsData:
     ids, z, nos = _numeric_rows(path, rows, ["pose"] + [f"Z{i}" for i in range(1, k + 1)])
     _check_range(path, z, nos, [f"Z{i}" for i in range(1, k + 1)], MAX_ZERNIKE_UM, "um")
     header = _wfs_header(path, comments)
-    from .plausibility import check_not_all_zero
-    from .thorlabs import check_tilt_not_cancelled
+    from .thorlabs import check_not_all_zero, check_tilt_not_cancelled
 
     check_not_all_zero(z, str(path))  # a file of zeros is named as such, before the tilt check
     check_tilt_not_cancelled(z[:, 1:3], str(path), "Zernike tilt modes Z2, Z3")

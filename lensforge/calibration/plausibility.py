@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, LensforgeError
+from .thorlabs import check_not_all_zero
 
 __all__ = ["HEADER_RTOL", "HEADER_TOLERANCE", "INSTRUMENT_TOLERANCE", "MAX_POSES", "REPEATABILITY_RANGE_MM",
-           "check_wfs_header", "check_wfs_values", "check_not_all_zero", "check_robot_reach", "check_repeatability", "check_plan_motion", "job_memory_bytes", "check_job_memory",
+           "check_wfs_header", "check_wfs_values", "check_robot_reach", "check_repeatability", "check_plan_motion", "job_memory_bytes", "check_job_memory",
            "available_memory_bytes", "WFS_HEADER_MODES", "pose_file_kind", "check_poses_count"]
 
 HEADER_RTOL = 1e-3  # header and bench agree to this relative difference (0.9 vs 0.9009 mm: printed rounding)
@@ -129,23 +130,11 @@ def check_wfs_header(bench, header: dict, source: str, mode: str = "error") -> d
     return dict(header)
 
 
-def _body(zernike_thorlabs) -> np.ndarray:
-    z = np.asarray(zernike_thorlabs, float)
-    return z[:, 1:] if z.shape[1] > 1 else z  # piston is ignored
-
-
-def check_not_all_zero(zernike_thorlabs: np.ndarray, source: str) -> None:
-    """Refuse a WFS file whose every coefficient is 0 (the readers run this before their
-    tilt check, whose advice would be wrong for a file of zeros)."""
-    if np.all(_body(zernike_thorlabs) == 0.0):
-        raise ConfigError(f"{source}: every coefficient is 0: no sensor measures a perfect plane wave; export the "
-                          "WFS software's Zernike table while the sensor runs")
-
-
 def check_wfs_values(zernike_thorlabs: np.ndarray, source: str, rows=()) -> None:
     """Refuse an all-zero WFS file, a row of zeros, and a file whose rows are all the same."""
     check_not_all_zero(zernike_thorlabs, source)
-    body = _body(zernike_thorlabs)
+    z = np.asarray(zernike_thorlabs, float)
+    body = z[:, 1:] if z.shape[1] > 1 else z  # piston is ignored
     zero = np.flatnonzero(np.all(body == 0.0, axis=1))
     if len(zero):
         row = rows[zero[0]] if len(rows) > zero[0] else zero[0] + 1

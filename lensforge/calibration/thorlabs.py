@@ -68,7 +68,7 @@ from ..optics.zernike import nm_to_noll, noll_to_osa
 
 __all__ = ["read_text_any", "read_export", "export_text", "read_export_folder", "pose_id_from_name",
            "expand_measurements", "SpotFields", "read_spot_field", "read_spot_fields", "spot_field_csv",
-           "spot_field_npz", "check_tilt_not_cancelled", "POSE_ID_PATTERN",
+           "spot_field_npz", "check_tilt_not_cancelled", "check_not_all_zero", "POSE_ID_PATTERN",
            "PUPIL_TOL_MM", "TILT_ZERO_UM"]
 
 POSE_ID_PATTERN = r"(\d+)(?!.*\d)"  # the last integer in a file name: pose_07.csv -> 7
@@ -359,13 +359,20 @@ def read_export_folder(spec, pattern: str | None = None) -> dict:
         header["reference_pose"] = sorted(refs)[0]
     if any(r["header"].get("reference") == "user" for r in recs):
         header["reference"] = "user"
-    from .plausibility import check_not_all_zero
-
     check_not_all_zero(z, str(spec))  # a file of zeros is named as such, before the tilt check
     check_tilt_not_cancelled(z[:, 1:3], str(spec), "Zernike tilt modes (Thorlabs 2, 3)",
                              any(r["header"].get("tilt_cancelled") for r in recs))
     return {"ids": tuple(ids), "zernike": z, "order": order, "header": header, "source": str(spec),
             "rows": tuple(range(1, len(ids) + 1))}
+
+
+def check_not_all_zero(zernike_thorlabs, source: str) -> None:
+    """ConfigError for a WFS file whose every coefficient (piston aside) is 0; the readers
+    run it before the tilt check, whose advice would be wrong for a file of zeros."""
+    z = np.asarray(zernike_thorlabs, float)
+    if np.all((z[:, 1:] if z.shape[1] > 1 else z) == 0.0):
+        raise ConfigError(f"{source}: every coefficient is 0: no sensor measures a perfect plane wave; export the "
+                          "WFS software's Zernike table while the sensor runs")
 
 
 def check_tilt_not_cancelled(tilt, source: str, what: str, flagged: bool = False, zero: float = TILT_ZERO_UM) -> None:
