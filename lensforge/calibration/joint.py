@@ -62,7 +62,7 @@ from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
 from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
-from .trust_region import damped_step, gain_ratio, next_radius
+from .trust_region import damped_step, gain_ratio, next_radius, predicted_decrease
 
 __all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain",
            "simulate_joint_data"]
@@ -84,6 +84,12 @@ def pose_chain(A, X, Z, a, T_SO_nominal):
     vectors x_i = log(T_SO,nominal^-1 B_i) (n, 6)."""
     B = invert_poses(Z) @ A @ pose_to_matrix(a) @ X
     return B, matrix_to_pose(invert_poses(T_SO_nominal) @ B)
+
+
+def sensor_gain(theta, k_lens: int, gain_sigma: float) -> float:
+    """The sensor gain g = 1 + gain_sigma s of a joint state theta = (lens (k_lens), s) (1
+    without the gain parameter, gain_sigma = 0)."""
+    return 1.0 + gain_sigma * float(theta[k_lens]) if gain_sigma > 0 else 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,7 +140,7 @@ class JointCalibrationResult:
     @property
     def sensor_gain(self) -> float:
         """Estimated g: effective lenslet focal length / the bench's (1 without the gain)."""
-        return 1.0 + self.gain_sigma * float(self.theta[self.k_lens]) if self.has_gain else 1.0
+        return sensor_gain(self.theta, self.k_lens, self.gain_sigma)
 
     @property
     def sensor_gain_std(self) -> float:
@@ -217,7 +223,7 @@ class JointProblem:
 
     def gain(self, theta) -> float:
         """The sensor gain g of the state (1 without the gain parameter)."""
-        return 1.0 + self.gain_sigma * float(theta[self.k_lens]) if self.k > self.k_lens else 1.0
+        return sensor_gain(theta, self.k_lens, self.gain_sigma)
 
     def model(self, theta) -> ForwardModel:
         theta = np.asarray(theta, float)[:self.k_lens]
@@ -433,9 +439,9 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             big = np.max(np.abs(dg[12:]), initial=0.0) / _THETA_TRUST
             if big > 1.0:  # theta's trust region: far outside its prior h is not near-linear
                 dg, da, length = dg / big, da / big, length / big
-            gd = bg @ dg + np.sum(ba * da)
-            dHd = dg @ Hgg @ dg + 2.0 * np.einsum("g,ngi,ni->", dg, Hga, da) + np.einsum("ni,nij,nj->", da, Haa, da)
-            pred = -(2.0 * gd + dHd)  # trust_region.predicted_decrease, blockwise
+            Hd_g = Hgg @ dg + np.einsum("ngi,ni->g", Hga, da)  # H d, block by block
+            Hd_a = np.einsum("ngi,g->ni", Hga, dg) + np.einsum("nij,nj->ni", Haa, da)
+            pred = predicted_decrease(np.r_[bg, ba.ravel()], np.r_[dg, da.ravel()], np.r_[Hd_g, Hd_a.ravel()])
             Xn, Zn = X @ pose_to_matrix(dg[:6]), Z @ pose_to_matrix(dg[6:12])
             thn, an = theta + dg[12:], a + da
             rn, litn, Bn, xn, uvn, zmn = pb.residuals(Xn, Zn, thn, an, uv0=uv)
