@@ -411,7 +411,7 @@ def canonical_ids(poses, wfs, reference_pose=None):
     return poses, wfs, ref
 
 
-def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-3, progress=None, gain_sigma=None):
+def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-3, progress=None):
     """CalibrationResult of a session whose measurements are relative to a user reference
     taken at pose ``data.measurement.reference`` (``referenced_calibrate`` from the cell's
     nominal X, Z; theta from the tolerance model as the joint method's; tolerances "none" or
@@ -424,10 +424,6 @@ def referenced_session(data, *, tolerances="default", outlier_alpha: float = 1e-
     from .session_joint import JointFrames
     from .session_result import CalibrationResult
 
-    if (data.model.bench.sensor.focal_length_rel_sigma if gain_sigma is None else gain_sigma) > 0:
-        raise ConfigError("sensor.focal_length_rel_sigma: the focal-length gain is not estimated from data "
-                          "relative to a user reference (not implemented); set it to 0 for this session, or "
-                          "record against the factory reference")
     known = no_tolerance_model(tolerances)  # no prior: the lens as designed (theta has no direction)
     tol, tol_label = resolve_tolerances("default" if known else tolerances)
     model, scene = data.model, data.scene

@@ -73,9 +73,19 @@ def run(data: SessionData, method: str = "joint", **options) -> CalibrationResul
     if method not in METHODS:
         raise ConfigError(f"method: {method!r} is not available; use one of {', '.join(METHODS)}")
     if data.measurement is not None and data.measurement.reference is not None:
-        keep = ("outlier_alpha", "progress", "tolerances", "gain_sigma")
+        if gain_prior(data, options.get("gain_sigma")) > 0:
+            raise ConfigError("sensor.focal_length_rel_sigma: the focal-length gain is not estimated from data "
+                              "relative to a user reference (not implemented); set it to 0 for this session, or "
+                              "record against the factory reference")
+        keep = ("outlier_alpha", "progress", "tolerances")
         return referenced_session(data, **{k: v for k, v in options.items() if k in keep})
     return METHODS[method](data, **options)
+
+
+def gain_prior(data: SessionData, gain_sigma: float | None = None) -> float:
+    """The focal-length gain's prior 1-sigma of a session: the given one, else the bench's
+    ``sensor.focal_length_rel_sigma``."""
+    return float(data.model.bench.sensor.focal_length_rel_sigma if gain_sigma is None else gain_sigma)
 
 
 def estimate_one(model: ForwardModel, z: np.ndarray, starts, estimator: str = "lm",
@@ -204,7 +214,7 @@ def two_stage(data: SessionData, *, outlier_alpha: float = OUTLIER_ALPHA, progre
                      "noise model; the lens as built may differ from its design (a joint as-built calibration "
                      "estimates it) or the robot/sensor noise is larger than assumed; the reported 1-sigma are "
                      "then too small")
-    if data.model.bench.sensor.focal_length_rel_sigma > 0:
+    if gain_prior(data) > 0:
         warns.append("the sensor's focal-length gain (sensor.focal_length_rel_sigma > 0) is estimated only by "
                      "the joint method; the two-stage pipeline takes the bench's lenslet_focal_mm as exact")
     m_fit = float(np.median(est_chi2))
@@ -236,8 +246,7 @@ def joint(data: SessionData, *, tolerances="default", start=two_stage, **kw) -> 
     when the lens is known, tolerances "none"); other keywords go to both methods where
     they apply (outlier_alpha, progress)."""
     ts_kw = {k: v for k, v in kw.items() if k in ("outlier_alpha", "progress")}
-    gain_sigma = kw.get("gain_sigma")
-    gain_sigma = data.model.bench.sensor.focal_length_rel_sigma if gain_sigma is None else gain_sigma
+    gain_sigma = gain_prior(data, kw.get("gain_sigma"))
     known_lens = no_tolerance_model(tolerances)
     if known_lens and not gain_sigma > 0:
         return _fallback(data, "no tolerance model for the as-built lens prior (tolerances: none)", start, **ts_kw)
