@@ -389,10 +389,11 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
     check_poses_count(len(common), f"{wfs.source} and {poses.source}: matched poses")
     at = [poses.ids.index(i) for i in common]
     A = poses.T[at]
+    scene = robot_scene(robot, bench.placement.distance_mm)  # the measurements' bench keeps the placement
     # the matched poses only: a robot log may hold home and approach poses that have no measurement
     check_cell_poses(replace(poses, ids=tuple(common), T=A, rows=tuple(poses.rows[k] for k in at)
                              if len(poses.rows) == len(poses.ids) else (), times=None),
-                     robot_scene(robot, bench.placement.distance_mm), bench,
+                     scene, bench,
                      robot_poses if isinstance(robot_poses, (str, PathLike)) else (poses.source or None))
     meas = None
     if isinstance(wfs, thorlabs.SpotFields):  # the likelihood on the per-lenslet slopes
@@ -409,7 +410,7 @@ def match_session(design, measurements, robot_poses, *, bench: Bench | None = No
         meas = Measurement(meas.kind if meas else "zernike", meas.lenslets if meas else None,
                            meas.dropped if meas else (), reference=common.index(ref))
     return SessionData(ids=tuple(common), A=A, z=z, model=model, robot=robot,
-                       scene=robot_scene(robot, b.placement.distance_mm), rejected=tuple(rejected), measurement=meas)
+                       scene=scene, rejected=tuple(rejected), measurement=meas)
 
 
 def calibrate(design: LensSpec, measurements: str | PathLike[str] | formats.WfsData,
