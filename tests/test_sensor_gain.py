@@ -103,3 +103,17 @@ def test_calibrate_reports_the_focal_length_and_refuses_bad_sigma(tmp_path, monk
                                          "-r", tmp_path / "r.csv", "--focal-length-sigma", bad)
         lines = err.strip().splitlines()
         assert code == 2 and lines[-1].startswith("error: ") and "--focal-length-sigma" in lines[-1], err
+
+
+def test_referenced_data_refuse_the_gain():
+    """Data relative to a user reference: the gain is not estimated there, so a gain prior is
+    refused before any fit (pipeline.run), naming the bench field."""
+    from types import SimpleNamespace
+
+    from lensforge.calibration.pipeline import run
+    from lensforge.errors import ConfigError
+    from lensforge.optics.bench import Bench
+
+    data = SimpleNamespace(measurement=SimpleNamespace(reference=0), model=SimpleNamespace(bench=Bench.default()))
+    with pytest.raises(ConfigError, match="sensor.focal_length_rel_sigma: the focal-length gain is not estimated"):
+        run(data, "joint", gain_sigma=0.01)
