@@ -49,6 +49,35 @@ def test_plan_is_the_joint_design_and_reports_both_bounds(kr10_plan):
     assert np.allclose(free[:3], p.z_std[:3]) and np.allclose(np.radians(free[3:]), p.z_std[3:])
 
 
+def test_plan_json_is_a_study_pose_plan(kr10_plan, tmp_path):
+    # the plan.json `lensforge plan` writes is what `study --pose-plan` reads: the same lens poses
+    from lensforge.verification.study import load_plan
+
+    f = tmp_path / "plan.json"
+    f.write_text(kr10_plan.files(("csv",))["plan.json"])
+    np.testing.assert_allclose(load_plan(f), kr10_plan.x, rtol=0, atol=1e-12)
+    d = json.loads(f.read_text())
+    del d["poses"][0]["lens_pose"]["rz_rad"]
+    f.write_text(json.dumps(d))
+    with pytest.raises(Exception, match="lens_pose"):
+        load_plan(f)
+
+
+def test_plan_box_follows_the_design(kr10_plan):
+    # a paper lens records no plan box: +-0.5 mm, +-5 deg; a design file's constraints give its own box
+    from lensforge.calibration.session import PLAN_BOX
+    from lensforge.optics.lens import ResolvedLens, paper_lens
+
+    assert (kr10_plan.work_translation_mm, kr10_plan.work_rotation_rad) == PLAN_BOX
+    r = ResolvedLens(paper_lens(LENS), "x", data={"constraints": {"plan_mm": 0.8, "plan_rad": 0.05}})
+    assert r.plan_box == (0.8, 0.05)
+    p = plan(r, n=4, seed=0, tolerances="none", n_candidates=40, n_random_sets=1)
+    assert (p.work_translation_mm, p.work_rotation_rad) == (0.8, 0.05)
+    assert np.all(np.abs(p.x[:, :3]) <= 0.8 + 1e-12) and np.all(np.abs(p.x[:, 3:]) <= 0.05 + 1e-12)
+    with pytest.raises(Exception, match="work_translation_mm"):
+        plan(LENS, n=4, work_translation_mm=float("nan"))
+
+
 def test_plan_for_a_second_robot_ur5e():
     p = plan(LENS, robot="ur5e", n=6, seed=1)
     assert p.robot.name.startswith("Universal Robots") and len(p.ids) == 6

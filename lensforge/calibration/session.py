@@ -52,7 +52,12 @@ if TYPE_CHECKING:
     from ..asbuilt.tolerances import Tolerances
 
 __all__ = ["Plan", "plan", "lit_mask", "lens_pose_crlb", "match_session", "calibrate", "estimate",
-           "load_design_lens", "bench_for_measurements", "zernike_for_model"]
+           "load_design_lens", "bench_for_measurements", "zernike_for_model", "PLAN_BOX"]
+
+#: (mm, rad) half-widths of the plan's box of lens poses about nominal when the design records none
+#: (ASSUMPTION +-0.5 mm, +-5 deg, as verification/scenario.py; a design file records the box it was
+#: checked over, ``lensforge design --plan-mm / --plan-deg``)
+PLAN_BOX = (0.5, math.radians(5.0))
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -191,8 +196,9 @@ class Plan:
 
 
 def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | str | None = None, n: int = 12,
-         seed: int = 0, tolerances: Tolerances | str | PathLike[str] | None = "default", work_translation_mm: float = 0.5,
-         work_rotation_rad: float = math.radians(5.0), lit_margin_mm: float = 0.3, n_candidates: int = 100,
+         seed: int = 0, tolerances: Tolerances | str | PathLike[str] | None = "default",
+         work_translation_mm: float | None = None, work_rotation_rad: float | None = None,
+         lit_margin_mm: float = 0.3, n_candidates: int = 100,
          n_random_sets: int = 5) -> Plan:
     """Calibration poses for the joint calibration (see the module docstring).
 
@@ -216,9 +222,11 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     tolerances : Tolerances, str or os.PathLike, optional
         The tolerance model of the as-built lens prior ("default", a TOML path or
         Tolerances); None or "none": the lens as designed (the known-lens problem).
-    work_translation_mm, work_rotation_rad : float
-        Half-widths of the box about nominal the poses are drawn from (ASSUMPTION
-        +-0.5 mm, +-5 deg, as verification/scenario.py).
+    work_translation_mm, work_rotation_rad : float, optional
+        Half-widths of the box about nominal the poses are drawn from. Default: the box
+        the design was checked over (its constraints' plan_mm / plan_rad, which
+        ``lensforge design`` sets with --plan-mm / --plan-deg), else ``PLAN_BOX``
+        (ASSUMPTION +-0.5 mm, +-5 deg, as verification/scenario.py).
     lit_margin_mm : float
         Lateral margin a pose must keep lit, mm.
     n_candidates : int
@@ -240,7 +248,15 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     PoseRangeError
         Fewer than n lit candidate poses the robot can reach in the working box.
     """
-    lens, bench = load_design_lens(design, bench)
+    resolved = resolve_lens(design)
+    lens, bench = resolved.lens, resolved.bench_or(bench)
+    box = resolved.plan_box or PLAN_BOX
+    work_translation_mm = box[0] if work_translation_mm is None else work_translation_mm
+    work_rotation_rad = box[1] if work_rotation_rad is None else work_rotation_rad
+    for name, v, unit in (("work_translation_mm", work_translation_mm, "mm"),
+                          ("work_rotation_rad", work_rotation_rad, "rad")):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ConfigError(f"{name}: the plan box's half-width must be a number > 0 {unit}, got {v!r}")
     robot = robot if isinstance(robot, RobotModel) else load_robot(robot)
     if int(n) != n or n < 3:
         raise ConfigError(f"n: need an integer >= 3 poses, got {n!r}")

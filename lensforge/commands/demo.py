@@ -36,7 +36,7 @@ def demo(
     import math
 
     from ..design.bench_vars import BenchVariables, bench_label
-    from ..design.constraints import Constraints
+    from ..design.constraints import PLAN_BOX_DEG, PLAN_BOX_MM, Constraints
     from ..design.design_file import save_design
     from ..errors import ConfigError
     from ..design.optimize import DEFAULT_MAX_EVALS, optimize_design
@@ -65,7 +65,7 @@ def demo(
         console.rule("2. Design a Zernike freeform lens (CMA-ES, A-optimal criterion, Noll 1..8 + base curvatures)"
                      + (" with its bench" if codesign else " on the paper's bench"))
         t0 = time.perf_counter()
-        cons = Constraints(plan_mm=0.5, plan_rad=math.radians(5.0))
+        cons = Constraints(plan_mm=PLAN_BOX_MM, plan_rad=math.radians(PLAN_BOX_DEG))
         if codesign:
             design = optimize_design(bench, model="zernike", method="cmaes", seed=seed, criterion="A", free="full",
                                      constraints=cons, bench_vars=BenchVariables(), lens_evals=60 if quick else None,

@@ -45,9 +45,10 @@ def design(
     require_observable: bool = typer.Option(False, "--require-observable",
                                             help="constraint: every pose DOF observable (predicted 1-sigma within "
                                                  "the bench's pose scale, DESIGN.md)"),
-    plan_mm: float = typer.Option(0.5, "--plan-mm", help="calibration plan's box, translation half-width (mm): the "
-                                  "sensor range and slope bound also hold there (lensforge plan draws from +-0.5 mm); 0 = off"),
-    plan_deg: float = typer.Option(5.0, "--plan-deg", help="calibration plan's box, rotation half-width (deg; plan: +-5)"),
+    plan_mm: float = typer.Option(1.5, "--plan-mm", help="calibration plan's box, translation half-width (mm): the "
+                                  "sensor range and slope bound also hold there, and lensforge plan draws from the "
+                                  "box the design records; 0 = off"),
+    plan_deg: float = typer.Option(5.0, "--plan-deg", help="calibration plan's box, rotation half-width (deg)"),
     time_limit: Optional[float] = typer.Option(None, "--time-limit", help="wall-clock limit (s)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML, or 'paper' for the paper's bench (built-in "
                                         "default: the paper's laser and sensor, with the bench variables designed)"),

@@ -5,11 +5,13 @@ the robot MODEL (a built-in name or a robot TOML)."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
 import typer
 
+from ..errors import ConfigError
 from ._common import ROBOT_HELP, bench_arg, check_seed, emit_json, info
 
 def plan_cmd(
@@ -21,6 +23,11 @@ def plan_cmd(
                                    help="tolerance TOML of the as-built lens prior the design plans for "
                                         "('default': the package's file; 'none': the lens as designed)"),
     bench: Optional[str] = typer.Option(None, "--bench", help="bench TOML (default: the design's)"),
+    box_mm: Optional[float] = typer.Option(None, "--box-mm", help="half-width of the box of lens poses about "
+                                           "nominal, translation (mm; default: the box the design was checked "
+                                           "over, its --plan-mm; paper lenses +-0.5)"),
+    box_deg: Optional[float] = typer.Option(None, "--box-deg", help="half-width of the box, rotation (deg; "
+                                            "default: the design's --plan-deg; paper lenses +-5)"),
     formats_: str = typer.Option("auto", "--formats",
                                  help="comma list of calibration.formats.PLAN_WRITERS names; auto = csv,json (+krl for a KUKA)"),
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
@@ -41,7 +48,11 @@ def plan_cmd(
 
     check_seed(seed)
     check_poses_count(n, "-n/--poses")
-    p = plan(design, bench=bench_arg(bench), robot=robot, n=n, seed=seed, tolerances=tolerances)
+    for opt, v, hi in (("--box-mm", box_mm, 10.0), ("--box-deg", box_deg, 30.0)):
+        if v is not None and not (math.isfinite(v) and 0 < v <= hi):
+            raise ConfigError(f"{opt}: the plan box's half-width must be in (0, {hi:g}], got {v!r}")
+    p = plan(design, bench=bench_arg(bench), robot=robot, n=n, seed=seed, tolerances=tolerances,
+             work_translation_mm=box_mm, work_rotation_rad=None if box_deg is None else math.radians(box_deg))
     fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
     if fm == ("auto",):
         fm = ("csv", "json", "krl") if p.robot.name.upper().startswith("KUKA") else ("csv", "json")

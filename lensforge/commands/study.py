@@ -79,7 +79,7 @@ def study_cmd(
     lenses: int = typer.Option(1000, "--lenses", "-n", help="number of as-built lenses"),
     poses: int = typer.Option(24, "--poses", help="calibration poses per lens"),
     pose_plan: Path = typer.Option(None, "--pose-plan", help="JSON {\"poses\": [[tx, ty, tz, rx, ry, rz], ...]} "
-                                   "(mm, rad, lens pose relative to nominal; e.g. a joint design) instead of "
+                                   "(mm, rad, lens pose relative to nominal; e.g. a joint design) or the plan.json of lensforge plan instead of "
                                    "--poses random ones"),
     seed: int = typer.Option(0, "--seed", help="study seed (trial i uses SeedSequence(seed) child i)"),
     workers: int = typer.Option(None, "--workers", help="local Dask worker processes (0 = in this process; "

@@ -40,6 +40,7 @@ from ..optics.bench import Bench
 from ..optics.lens import Lens
 from ..optics.pose import pose_to_matrix
 from ..optics.shack_hartmann import ForwardModel
+from .constraints import PLAN_BOX_DEG, PLAN_BOX_MM
 
 __all__ = ["SelfCalSpec", "default_grasp", "joint_information", "selfcal_value", "plan_for", "plan_candidates"]
 
@@ -68,8 +69,8 @@ class SelfCalSpec:
     grasp: np.ndarray = field(default_factory=default_grasp)
     repeatability_mm: float = 0.02
     lever_mm: float = 500.0
-    plan_mm: float = 0.5
-    plan_rad: float = math.radians(5.0)
+    plan_mm: float = PLAN_BOX_MM
+    plan_rad: float = math.radians(PLAN_BOX_DEG)
     n_candidates: int = 60
     seed: int = 0
 

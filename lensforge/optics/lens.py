@@ -7,6 +7,8 @@ vertex at z = +l/2. Surface sags are added to their vertex planes.
 
 from __future__ import annotations
 
+import math
+
 from os import PathLike
 
 from numpy.typing import ArrayLike
@@ -311,6 +313,19 @@ class ResolvedLens:
     def bench_or(self, override: Bench | None = None) -> Bench:
         """``override`` if given, else the design's bench, else the built-in default."""
         return override or self.bench or Bench.default()
+
+    @property
+    def plan_box(self) -> tuple[float, float] | None:
+        """(mm, rad) half-widths of the calibration plan's box the design was checked over
+        (its constraints' plan_mm / plan_rad), or None when the source records none."""
+        cons = self.data.get("constraints") if self.data else getattr(self.source, "constraints", None)
+        if not isinstance(cons, dict):
+            return None
+        try:
+            mm, rad = float(cons.get("plan_mm", 0.0)), float(cons.get("plan_rad", 0.0))
+        except (TypeError, ValueError):
+            return None
+        return (mm, rad) if mm > 0 and rad > 0 and math.isfinite(mm) and math.isfinite(rad) else None
 
 
 class HasLens(Protocol):

@@ -41,13 +41,13 @@ from ..calibration.initial_poses import InitialPoseModel
 from ..calibration.robot import RobotModel
 from ..calibration.formats import write_bundle
 from ..calibration.robot import Scene
-from ..calibration.session import Plan, calibrate, load_design_lens, plan
+from ..calibration.session import Plan, calibrate, plan
 from ..calibration.session_result import SCHEMA_VERSION, SessionData, frame_dict
 from ..errors import ConfigError, LensforgeError
 from ..fileio import dumps_json
 from ..asbuilt.tolerances import resolve_tolerances, sample_as_built
 from ..optics.bench import Bench
-from ..optics.lens import LensSpec
+from ..optics.lens import LensSpec, resolve_lens
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
@@ -231,9 +231,10 @@ def simulate_session(design: LensSpec, *, tolerances: Tolerances | str | Path | 
         true ``Z`` and ``X`` (4x4, mm), the as-built ``lens``, ``x_true`` (n, 6) and the plan;
         ``files()`` gives robot_poses.csv, wfs_zernike.csv and truth.json as text.
     """
-    lens, bench = load_design_lens(design, bench)
+    resolved = resolve_lens(design)  # the plan keeps the design's plan box
+    lens, bench = resolved.lens, resolved.bench_or(bench)
     tolerances = resolve_tolerances(tolerances)[0]
-    p = session_plan or plan(lens, bench=bench, robot=robot, n=n, seed=seed)
+    p = session_plan or plan(resolved, bench=bench, robot=robot, n=n, seed=seed)
     scene = p.scene
     grasp = grasp or InitialPoseModel()
     ss_lens, ss_cell, ss_robot, ss_sensor = np.random.SeedSequence([seed, 11]).spawn(4)
@@ -332,8 +333,9 @@ def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, b
     "p_values": (k,) of the chi2 model check, "z_translation_error_mm", "z_rotation_error_deg",
     "seeds": (k,) of the scored sessions, "failed": sessions that raised}."""
 
-    lens, bench = load_design_lens(design, bench)
-    p = plan(lens, bench=bench, robot=robot, n=n, seed=seed if plan_seed is None else plan_seed,
+    resolved = resolve_lens(design)
+    lens, bench = resolved.lens, resolved.bench_or(bench)
+    p = plan(resolved, bench=bench, robot=robot, n=n, seed=seed if plan_seed is None else plan_seed,
              tolerances=calibration_tolerances)
     outcomes = []
     for k in range(n_sessions):

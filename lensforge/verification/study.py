@@ -381,14 +381,22 @@ def check_plan(plan, source: str = "pose plan") -> np.ndarray:
 
 
 def load_plan(path) -> np.ndarray:
-    """A calibration plan from JSON: {"poses": [[tx, ty, tz, rx, ry, rz], ...]} or the bare
-    list (lens pose vectors relative to nominal, mm and rad; e.g. a joint design's x)."""
+    """A calibration plan from JSON: {"poses": [[tx, ty, tz, rx, ry, rz], ...]}, the bare
+    list (lens pose vectors relative to nominal, mm and rad; e.g. a joint design's x), or the
+    plan.json that ``lensforge plan`` writes (its poses' "lens_pose" entries)."""
     from ..fileio import read_json
 
     d = read_json(path, "pose plan")
     poses = d.get("poses") if isinstance(d, dict) else d
     if poses is None:
         raise ConfigError(f"{path}: no \"poses\" list (rows of tx ty tz mm, rx ry rz rad)")
+    if isinstance(poses, list) and poses and all(isinstance(p, dict) for p in poses):
+        keys = ("tx_mm", "ty_mm", "tz_mm", "rx_rad", "ry_rad", "rz_rad")
+        try:
+            poses = [[p["lens_pose"][k] for k in keys] for p in poses]
+        except (KeyError, TypeError):
+            raise ConfigError(f"{path}: poses: each entry needs \"lens_pose\" with {', '.join(keys)} "
+                              "(the plan.json of `lensforge plan`)") from None
     return check_plan(poses, str(path))
 
 
