@@ -162,3 +162,26 @@ def test_slope_constraint_reported():
     x = 12.7  # steepest at the rim along x: dz/dx = 2 zeta2 x + 4 zeta4 x^3 (paper Eq. 11, back surface)
     expected = np.degrees(np.arctan(abs(2 * -4.16e-2 * x + 4 * -9.15e-7 * x**3)))
     assert v.value == pytest.approx(expected, abs=0.05) and "max_slope_deg" in v.message
+
+
+def test_cmaes_narrows_its_step_in_a_thin_feasible_region():
+    # a feasible set 0.004 wide around the start (like fixed spot windows): at the default step no lens
+    # of the first generation is feasible, so CMA-ES restarts 10x narrower and then improves on its start
+    from lensforge.design.optimize import INFEASIBLE, OPTIMISERS
+
+    class Thin:
+        max_evals, n_evals = 400, 0
+        best = np.inf
+
+        def batch(self, U):
+            U = np.atleast_2d(U)
+            self.n_evals += len(U)
+            d = np.abs(U - 0.5).max(axis=1)
+            f = np.where(d < 0.002, np.sum((U - 0.501) ** 2, axis=1), INFEASIBLE + d)
+            self.best = min(self.best, f.min())
+            return f  # the budget is CMA-ES's maxfevals
+
+    prob = Thin()
+    info = OPTIMISERS["cmaes"].run(prob, np.full(6, 0.5), np.random.default_rng(0), 0, {"sigma0": 0.1})
+    assert info["narrowed"] >= 2 and info["sigma_used"] <= 0.001 + 1e-12
+    assert prob.best < 6 * 0.001**2  # feasible and better than the start (6e-6)

@@ -38,6 +38,9 @@ def design(
     starts: int = typer.Option(1, "--starts", help="Nelder-Mead multi-start count"),
     particles: int = typer.Option(30, "--particles", help="PSO swarm size"),
     population: Optional[int] = typer.Option(None, "--population", help="GA / CMA-ES population"),
+    sigma0: float = typer.Option(0.1, "--sigma0", help="CMA-ES first step in the unit box of the parameters (a "
+                                 "first generation with no feasible lens narrows it 10x, down to 0.001); small "
+                                 "values search a thin feasible region, e.g. 0.01 with --spot-assignment fixed"),
     min_thickness: float = typer.Option(1.0, "--min-thickness", help="minimum centre and edge thickness (mm)"),
     range_mm: float = typer.Option(1.0, "--range-mm", help="working range, translation half-width (mm)"),
     range_deg: float = typer.Option(1.0, "--range-deg", help="working range, rotation half-width (deg)"),
@@ -103,13 +106,15 @@ def design(
         selfcal = SelfCalSpec(load_tolerances(DEFAULT_TOLERANCES_FILE if selfcal_tolerances == "default"
                                               else selfcal_tolerances), n_poses=selfcal_poses,
                               plan_mm=plan_mm, plan_rad=math.radians(plan_deg))
+    if not (math.isfinite(sigma0) and 1e-4 <= sigma0 <= 1.0):
+        raise ConfigError(f"--sigma0: the CMA-ES step must be in [0.0001, 1] (unit box), got {sigma0!r}")
     check_output(out, folder=False, option="-o/--out")
     cons = Constraints(min_center_mm=min_thickness, min_edge_mm=min_thickness, range_mm=range_mm,
                        range_rad=math.radians(range_deg), max_slope_deg=max_slope, observable=require_observable,
                        plan_mm=plan_mm, plan_rad=math.radians(plan_deg))
     d = optimize_design(b, model=model, method=method, seed=seed, criterion=criterion, weights=_weights(weights),
                         free=free, bounds=bounds, constraints=cons, max_evals=max_evals, start=start,
-                        n_starts=starts, particles=particles, population=population, time_limit_s=time_limit,
+                        n_starts=starts, particles=particles, population=population, sigma0=sigma0, time_limit_s=time_limit,
                         progress=not no_progress and not json_out, robust=spec, bench_vars=bvars,
                         lens_evals=lens_evals, selfcal=selfcal, selfcal_rounds=selfcal_rounds)
     path = save_design(d, out)

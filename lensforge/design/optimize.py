@@ -333,15 +333,32 @@ def _run_cmaes(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
              "verb_disp": 0, "verb_log": 0, "tolfun": float(opts.get("ftol", 1e-11)), "tolx": float(opts.get("xtol", 1e-8))}
     if opts.get("population"):
         copts["popsize"] = int(opts["population"])
-    es = cma.CMAEvolutionStrategy(np.asarray(u0, dtype=float), sigma0, copts)
+    # a feasible region thinner than the search width (e.g. fixed spot windows: every slope below ~9 mrad)
+    # leaves a whole first generation infeasible and CMA-ES does not leave its start: restart it from the
+    # start with a 10x smaller step until a first generation holds a feasible lens (the default designs'
+    # first generations do, so they are unchanged)
+    sigma, narrowed = sigma0, 0
     try:
+        while True:
+            es = cma.CMAEvolutionStrategy(np.asarray(u0, dtype=float), sigma,
+                                          {**copts, "maxfevals": prob.max_evals - prob.n_evals})
+            X = es.ask()
+            F = prob.batch(np.array(X))
+            es.tell(X, list(F))
+            if np.any(np.asarray(F) < INFEASIBLE) or sigma <= _CMA_MIN_SIGMA * 1.0001:
+                break
+            sigma, narrowed = max(0.1 * sigma, _CMA_MIN_SIGMA), narrowed + 1
         while not es.stop():
             X = es.ask()
             F = prob.batch(np.array(X))
             es.tell(X, list(F))
     except _Stop:
         pass
-    return {"sigma0": sigma0, "popsize": int(es.popsize), "stop": {k: _plain_stop(v) for k, v in es.stop().items()}}
+    return {"sigma0": sigma0, "sigma_used": sigma, "narrowed": narrowed, "popsize": int(es.popsize),
+            "stop": {k: _plain_stop(v) for k, v in es.stop().items()}}
+
+
+_CMA_MIN_SIGMA = 1e-3  # smallest first step of a narrowed CMA-ES restart (unit box)
 
 
 def _plain_stop(v):
