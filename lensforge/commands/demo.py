@@ -88,12 +88,14 @@ def demo(
         console.print(st.relocate(rep.summary()))
 
         console.rule("4. As-built verification: calibration error of printed lenses")
-        # an as-built lens costs ~1 s of joint calibration on the paper's 0.9 mm pupil and about a
-        # minute on a co-designed 3.5 mm pupil (15x the lenslets): fewer lenses there
-        n = (2 if codesign else 4) if quick else (8 if codesign else 20)
+        # an as-built lens costs a few s of joint calibration on the paper's 0.9 mm pupil and about three
+        # minutes of CPU on a co-designed 3.5 mm pupil (15x the lenslets, two starts of 10-30 iterations):
+        # fewer lenses there, one per core (Dask; the kernels are compiled once, on disk)
+        n = (2 if codesign else 4) if quick else (4 if codesign else 20)
         store = work / "demo-study.sqlite"
         res = verify(design, load_tolerances(DEFAULT_TOLERANCES_FILE), n_lenses=n, seed=seed, bench=bench,
-                     config=StudyConfig(n_poses=12 if quick else 24, calibration="joint"), workers=0, store=store)
+                     config=StudyConfig(n_poses=12 if quick else 24, calibration="joint"),
+                     workers=0 if quick else None, store=store)
         s = res.summary
 
         def fmt(d, unit):
