@@ -76,6 +76,10 @@ def test_plan_box_follows_the_design(kr10_plan):
     assert np.all(np.abs(p.x[:, :3]) <= 0.8 + 1e-12) and np.all(np.abs(p.x[:, 3:]) <= 0.05 + 1e-12)
     with pytest.raises(Exception, match="work_translation_mm"):
         plan(LENS, n=4, work_translation_mm=float("nan"))
+    bad = ResolvedLens(paper_lens(LENS), "x", data={"constraints": {"plan_mm": "1.5 mm", "plan_rad": 0.05}},
+                       source="d.json")
+    with pytest.raises(Exception, match=r"d.json: field constraints.plan_mm"):
+        bad.plan_box
 
 
 def test_plan_for_a_second_robot_ur5e():

@@ -321,11 +321,14 @@ class ResolvedLens:
         cons = self.data.get("constraints") if self.data else getattr(self.source, "constraints", None)
         if not isinstance(cons, dict):
             return None
-        try:
-            mm, rad = float(cons.get("plan_mm", 0.0)), float(cons.get("plan_rad", 0.0))
-        except (TypeError, ValueError):
-            return None
-        return (mm, rad) if mm > 0 and rad > 0 and math.isfinite(mm) and math.isfinite(rad) else None
+        box = []
+        for key in ("plan_mm", "plan_rad"):
+            v = cons.get(key, 0.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"{self.source}: field constraints.{key}: expected a number >= 0 (the plan "
+                                  f"box the design was checked over; 0 = none), got {v!r}")
+            box.append(float(v))
+        return (box[0], box[1]) if box[0] > 0 and box[1] > 0 else None
 
 
 class HasLens(Protocol):
