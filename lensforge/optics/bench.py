@@ -89,7 +89,7 @@ class Sensor:
     centroid); centroid_threshold: noise cut as a fraction of the spot peak
     subtracted before the centroid (ASSUMPTION 0, see ``centroid.py``).
     crosstalk: 'none' (each lenslet alone, its window centred on its spot) or 'neighbours'
-    (``centroid.crosstalk_slopes``: the 5 x 5 neighbours' coherent spots in each whole-pixel
+    (``centroid.crosstalk_slopes``: the 7 x 7 neighbours' coherent spots in each whole-pixel
     window, against the factory reference; issue 21); camera_offset_px: the camera pixel
     grid's offset from the lenslet array along x and y (ASSUMPTION 1/3 px: not known; 0
     puts the central row's and column's reference spots on pixel corners, a placement tie).
