@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import ConfigError
-from .interrupts import committing
+from .interrupts import committing, note_staging
 
 __all__ = ["write_atomic", "read_json", "read_toml", "json_default", "dumps_json", "check_output", "staged_dir",
            "Staged", "MAX_INPUT_BYTES", "MAX_TABLE_BYTES", "read_bounded", "public_path", "public_text"]
@@ -51,6 +51,7 @@ def write_atomic(path, data: bytes | str) -> Path:
     if isinstance(data, str):
         data = data.encode()
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    note_staging(tmp)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -213,6 +214,7 @@ def staged_dir(out):
         out = out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp"))
+    note_staging(tmp)
     try:
         yield Staged(tmp, out)
         _fsync_tree(tmp)

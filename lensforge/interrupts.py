@@ -38,7 +38,7 @@ import time
 from contextlib import contextmanager
 
 __all__ = ["Interrupted", "Terminated", "sigint_guard", "committing", "hard_exit", "supervise", "descendants", "alive",
-           "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OUT_OF_MEMORY_LINE"]
+           "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OUT_OF_MEMORY_LINE", "note_staging"]
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shell convention
 EXIT_TERMINATED = 143  # 128 + SIGTERM
@@ -48,6 +48,7 @@ OUT_OF_MEMORY_LINE = ("error: out of memory: the system killed the command (SIGK
                       "reduce the problem size (lenses, poses, mesh tolerance) or free memory")
 KILLED_LINE = "error: killed by SIGKILL from outside lensforge (not out of memory); run the command again"
 _SUPERVISOR_ENV = "_LENSFORGE_SUPERVISOR"  # set in the supervised child: its supervisor's pid
+_STAGING_FD_ENV = "_LENSFORGE_STAGING_FD"  # the supervised child's pipe to its supervisor: staged temp paths
 REPEAT_S = 0.5  # a second SIGINT this soon after the first is the same press (terminal + forwarded copy)
 
 
@@ -290,17 +291,70 @@ def supervise(grace_s: float = 1.5) -> None:
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, watch)  # nothing lost between fork and wait
     parent = os.getpid()
     oom_before = _oom_kills()
+    staging_r, staging_w = os.pipe()  # the child names its staged temp files here (``note_staging``)
     try:
         pid = os.fork()
     except OSError:  # pragma: no cover - out of processes: run unsupervised
+        os.close(staging_r)
+        os.close(staging_w)
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
         return
     if pid == 0:
         _die_with_parent(parent)
+        os.close(staging_r)
         os.environ[_SUPERVISOR_ENV] = str(parent)
+        os.environ[_STAGING_FD_ENV] = f"{os.getpid()}:{staging_w}"
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C now reaches the caller's guard
         return
-    _wait_for_child(pid, watch, grace_s, oom_before)
+    os.close(staging_w)
+    os.set_blocking(staging_r, False)
+    _wait_for_child(pid, watch, grace_s, oom_before, staging_r)
+
+
+def note_staging(path) -> None:
+    """Tell the supervisor (``supervise``) about a temporary output ``path`` this command creates,
+    so that a command killed before its own cleanup runs (a Ctrl-C while OCP's C initialisation
+    holds the interpreter, the watchdog's hard exit, SIGKILL) leaves no temp file or folder: the
+    supervisor deletes the named paths that still exist once the child is gone by a signal.
+    Nothing happens outside a supervised command (or in its worker processes)."""
+    v = os.environ.get(_STAGING_FD_ENV, "")
+    pid, _, fd = v.partition(":")
+    if not fd or pid != str(os.getpid()):
+        return
+    try:
+        os.write(int(fd), (os.path.abspath(os.fsdecode(os.fspath(path))) + "\0").encode("utf-8", "surrogateescape"))
+    except (OSError, ValueError):  # pragma: no cover - a full pipe (64 KiB of paths) or a closed one
+        pass
+
+
+def _remove_staged(fd: int | None) -> None:
+    """Delete the temp paths the killed child named (``note_staging``) that still exist."""
+    import shutil
+
+    if fd is None:
+        return
+    data = b""
+    while True:
+        try:
+            chunk = os.read(fd, 65536)
+        except BlockingIOError:
+            break
+        except OSError:  # pragma: no cover
+            break
+        if not chunk:
+            break
+        data += chunk
+    for raw in data.split(b"\0"):
+        if not raw:
+            continue
+        p = raw.decode("utf-8", "surrogateescape")
+        try:
+            if os.path.isdir(p) and not os.path.islink(p):
+                shutil.rmtree(p, ignore_errors=True)
+            elif os.path.lexists(p):
+                os.unlink(p)
+        except OSError:  # pragma: no cover - gone meanwhile, or not ours to delete
+            pass
 
 
 def _cgroup_file(name: str) -> str | None:
@@ -351,7 +405,8 @@ def _sigkill_line(peak_bytes: float, oom_before: int | None) -> tuple[str, int]:
     return KILLED_LINE, 128 + int(signal.SIGKILL)
 
 
-def _wait_for_child(pid: int, watch: set, grace_s: float, oom_before: int | None = None) -> None:
+def _wait_for_child(pid: int, watch: set, grace_s: float, oom_before: int | None = None,
+                    staging_fd: int | None = None) -> None:
     """The supervisor's loop (never returns)."""
     deadline = None
     first_int = None
@@ -363,6 +418,8 @@ def _wait_for_child(pid: int, watch: set, grace_s: float, oom_before: int | None
             done, status, usage = pid, 0, None
         if done == pid:
             code = os.waitstatus_to_exitcode(status)
+            if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) or code < 0:  # ended by a signal: its leftovers
+                _remove_staged(staging_fd)
             if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) or (deadline is not None and code < 0):
                 final = EXIT_TERMINATED if (term or code == EXIT_TERMINATED) else EXIT_INTERRUPTED
                 _write_line(_SIGNAL_EXIT[final])
@@ -385,6 +442,7 @@ def _wait_for_child(pid: int, watch: set, grace_s: float, oom_before: int | None
         if deadline is not None and now >= deadline:
             _kill_tree(pid)
             os.waitpid(pid, 0)  # SIGKILL: soon
+            _remove_staged(staging_fd)
             final = EXIT_TERMINATED if term else EXIT_INTERRUPTED
             _write_line(_SIGNAL_EXIT[final])
             os._exit(final)

@@ -187,3 +187,32 @@ def test_staged_output_is_complete_or_absent_under_sigterm(tmp_path):
     _, err = p.communicate(timeout=60)
     assert p.returncode == 143 and err == "error: terminated\n", err
     assert os.listdir(tmp_path) == []
+
+
+def test_a_killed_command_leaves_no_staged_temp(tmp_path):
+    # a supervised command killed before its own cleanup can run (SIGKILL here; a Ctrl-C while OCP's C
+    # initialisation holds the interpreter ends the same way): the supervisor deletes the temp folder
+    # and temp file the command staged, and nothing else
+    import subprocess
+    import sys
+    import textwrap
+
+    keep = tmp_path / "keep.txt"
+    keep.write_text("mine")
+    script = textwrap.dedent(f"""
+        import os, signal
+        from lensforge.interrupts import supervise
+        from lensforge.fileio import staged_dir, write_atomic
+        supervise()
+        cm = staged_dir({str(tmp_path / "out")!r})
+        st = cm.__enter__()
+        (st.tmp / "part.txt").write_text("partial")
+        import tempfile
+        from lensforge.interrupts import note_staging
+        fd, half = tempfile.mkstemp(dir={str(tmp_path)!r}, prefix=".f.", suffix=".tmp")
+        note_staging(half)
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "SIGKILL" in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt"]

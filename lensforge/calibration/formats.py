@@ -70,7 +70,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError
 from ..input_checks import field_number
-from ..interrupts import committing
+from ..interrupts import committing, note_staging
 from ..fileio import MAX_TABLE_BYTES, dumps_json, read_bounded, read_json, write_atomic
 
 if TYPE_CHECKING:
@@ -700,6 +700,7 @@ def write_bundle(folder, files: dict, overwrite: bool = True, drop: tuple = ()) 
     if folder.exists() and not folder.is_dir():
         raise ConfigError(f"output folder {folder}: exists and is not a folder; choose another -o")
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.", suffix=".tmp"))
+    note_staging(tmp)
     try:
         if folder.exists():
             for p in folder.iterdir():
