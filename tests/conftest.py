@@ -100,3 +100,13 @@ def pose_error(T_true, T_est):
     from lensforge.optics.pose import matrix_to_pose
 
     return matrix_to_pose(np.linalg.solve(T_true, T_est))
+
+
+
+def assert_exact_transforms(pairs, rtol=1e-8):
+    """Noise-free exactness of estimated transforms: for each (true, estimated) 4x4 pair the
+    translation error is within rtol of the true translation and the rotation error within rtol rad."""
+    for T_true, T_est in pairs:
+        e = pose_error(T_true, T_est)
+        assert np.linalg.norm(e[:3]) <= rtol * np.linalg.norm(T_true[:3, 3])
+        assert np.linalg.norm(e[3:]) <= rtol

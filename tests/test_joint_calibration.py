@@ -8,7 +8,7 @@ that theta is small and the tests fast).
 
 import numpy as np
 import pytest
-from conftest import pose_error
+from conftest import assert_exact_transforms, pose_error
 
 from lensforge.calibration.joint import joint_calibrate, pose_chain, simulate_joint_data
 from lensforge.asbuilt.lens_params import lens_space, parameterise
@@ -103,10 +103,7 @@ def test_noise_free_exactness(setup, param):
     res = joint_calibrate(bench, param, z, A, scene.T_SO_nominal, X0, Z0, scene.noise.cov, theta_prior=False)
     assert res.converged and res.used.all()
     assert np.max(np.abs(res.theta - theta)) <= 1e-8 * np.max(np.abs(theta))
-    for T_true, T_est in ((X, res.X), (scene.Z, res.Z)):
-        e = _err(T_true, T_est)
-        assert np.linalg.norm(e[:3]) <= 1e-8 * np.linalg.norm(T_true[:3, 3])
-        assert np.linalg.norm(e[3:]) <= 1e-8
+    assert_exact_transforms(((X, res.X), (scene.Z, res.Z)))
     assert res.chi2 < 1e-10 * res.dof
 
 

@@ -337,21 +337,22 @@ def _run_cmaes(prob: DesignProblem, u0, rng, seed: int, opts: dict) -> dict:
     # leaves a whole first generation infeasible and CMA-ES does not leave its start: restart it from the
     # start with a 10x smaller step until a first generation holds a feasible lens (the default designs'
     # first generations do, so they are unchanged)
+    def generation(es) -> np.ndarray:
+        X = es.ask()
+        F = prob.batch(np.array(X))
+        es.tell(X, list(F))
+        return np.asarray(F)
+
     sigma, narrowed = sigma0, 0
     try:
         while True:
             es = cma.CMAEvolutionStrategy(np.asarray(u0, dtype=float), sigma,
                                           {**copts, "maxfevals": prob.max_evals - prob.n_evals})
-            X = es.ask()
-            F = prob.batch(np.array(X))
-            es.tell(X, list(F))
-            if np.any(np.asarray(F) < INFEASIBLE) or sigma <= _CMA_MIN_SIGMA * 1.0001:
+            if np.any(generation(es) < INFEASIBLE) or sigma <= _CMA_MIN_SIGMA * 1.0001:
                 break
             sigma, narrowed = max(0.1 * sigma, _CMA_MIN_SIGMA), narrowed + 1
         while not es.stop():
-            X = es.ask()
-            F = prob.batch(np.array(X))
-            es.tell(X, list(F))
+            generation(es)
     except _Stop:
         pass
     return {"sigma0": sigma0, "sigma_used": sigma, "narrowed": narrowed, "popsize": int(es.popsize),
