@@ -162,3 +162,22 @@ def test_tir_pose_range_and_pupil_errors(bench):
     big = bench.replace(sensor={"pupil_radius_mm": 2.5})
     with pytest.raises(PupilError, match="under-filled"):
         lf.measure(big, zer)
+
+
+@pytest.mark.parametrize("gains", [(0.871, 0.949), (0.9, 0.9), (1.0, 1.0)])
+def test_centroid_derivatives_match_a_complex_step(gains):
+    """The closed-form forward derivative of the pixel-window centroid (what the exact Jacobians
+    use without the cross-talk model) against a complex step through centroid_slopes itself."""
+    from lensforge.optics.centroid import centroid_slope_derivatives, centroid_slopes, quadrature_rule
+
+    rng = np.random.default_rng(3)
+    off, wt = quadrature_rule(2)
+    sq = rng.normal(0, 0.05, (3, 7, 4, 2))
+    wi = rng.uniform(0.2, 1.0, (3, 7, 4)) * wt
+    dsq, dwi = rng.normal(size=(3, 7, 4, 2, 5)), rng.normal(size=(3, 7, 4, 5)) * wt[:, None]
+    d = centroid_slope_derivatives(sq, wi, dsq, dwi, off, wt, gains)
+    eps = 1e-30
+    ref = np.stack([centroid_slopes(sq + 1j * eps * dsq[..., k], wi + 1j * eps * dwi[..., k], off, wt, gains).imag / eps
+                    for k in range(5)], axis=-1)
+    assert d.shape == (3, 7, 2, 5)
+    np.testing.assert_allclose(d, ref, rtol=1e-12, atol=1e-14 * np.abs(ref).max())

@@ -44,7 +44,7 @@ import numpy as np
 
 from .bench import CROSSTALK_MODELS, Sensor
 
-__all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "CROSSTALK_MODELS", "crosstalk_shift", "reference_shift",
+__all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "centroid_slope_derivatives", "CROSSTALK_MODELS", "crosstalk_shift", "reference_shift",
            "local_field", "crosstalk_slopes"]
 
 
@@ -122,6 +122,32 @@ def centroid_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights
     k_yx = np.einsum("q,...q->...", weights * offsets[:, 0], sq[..., 1]) / m2[0]  # d s_y / dx
     cross = np.stack([k_xy * centroid[..., 1], k_yx * centroid[..., 0]], axis=-1)
     return s_u + g_d * (s_w - s_u - cross) + g_c * cross
+
+
+def centroid_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray, dwi: np.ndarray, offsets: np.ndarray,
+                               weights: np.ndarray, gains: tuple[float, float]) -> np.ndarray:
+    """Derivatives (..., 2, d) of ``centroid_slopes`` along d directions: dsq (..., q, 2, d) and
+    dwi (..., q, d) the quadrature slopes' and weights' changes (forward mode, exact)."""
+    tot = wi.sum(axis=-1)[..., None]
+    dtot = dwi.sum(axis=-2)[..., None, :]  # (..., 1, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_w = (np.einsum("...q,...qk->...k", wi, sq) / tot)[..., None]  # (..., 2, 1)
+        ds_w = (np.einsum("...qd,...qk->...kd", dwi, sq) + np.einsum("...q,...qkd->...kd", wi, dsq) - s_w * dtot) / tot[..., None]
+    ds_u = np.einsum("q,...qkd->...kd", weights, dsq)
+    g_d, g_c = gains
+    m2 = weights @ offsets**2
+    if g_d == g_c or np.any(m2 == 0):
+        return ds_u + g_d * (ds_w - ds_u)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cen = (np.einsum("...q,qk->...k", wi, offsets) / tot)[..., None]  # (xi, eta)
+        dcen = (np.einsum("...qd,qk->...kd", dwi, offsets) - cen * dtot) / tot[..., None]
+    k_xy = np.einsum("q,...q->...", weights * offsets[:, 1], sq[..., 0]) / m2[1]
+    k_yx = np.einsum("q,...q->...", weights * offsets[:, 0], sq[..., 1]) / m2[0]
+    dk_xy = np.einsum("q,...qd->...d", weights * offsets[:, 1], dsq[..., 0, :]) / m2[1]
+    dk_yx = np.einsum("q,...qd->...d", weights * offsets[:, 0], dsq[..., 1, :]) / m2[0]
+    dcross = np.stack([dk_xy * cen[..., 1, :] + k_xy[..., None] * dcen[..., 1, :],
+                       dk_yx * cen[..., 0, :] + k_yx[..., None] * dcen[..., 0, :]], axis=-2)
+    return ds_u + g_d * (ds_w - ds_u - dcross) + g_c * dcross
 
 
 # ----------------------------------------------------------------------------- neighbour cross-talk

@@ -34,9 +34,10 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .centroid import centroid_slopes, crosstalk_slopes, quadrature_rule, window_gain
+from .centroid import centroid_slope_derivatives, centroid_slopes, crosstalk_slopes, quadrature_rule, window_gain
 from .sensor_range import SensorRange, range_use, summarize_range
-from .trace import AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, lens_kernel, trace_rays
+from .trace import (AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, aimed_tangents, lens_kernel,
+                    trace_rays)
 from .zernike import modes_up_to_order, zernike_gradient
 
 # step (mm) of the forward differences in the beam coordinates that give the ray map's second
@@ -281,13 +282,33 @@ class ForwardModel:
         P, n_l, q = a["st"].shape
         return np.where(a["st"] == OK, a["irr"].reshape(P, n_l, q), 0.0) * self.quad_weights
 
+    @property
+    def _own_centroid(self) -> bool:
+        """Each lenslet's centroid depends on its own light only (no cross-talk model; window 0:
+        the complete spot)."""
+        sensor = self.bench.sensor
+        return sensor.crosstalk == "none" or sensor.centroid_window_px == 0
+
     def _centroids(self, sq, wi) -> np.ndarray:
         s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
-        sensor = self.bench.sensor
-        if sensor.crosstalk == "none" or sensor.centroid_window_px == 0:  # window 0: the complete spot
+        if self._own_centroid:
             return s
+        sensor = self.bench.sensor
         return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
                                 self.bench.laser.wavelength_nm)
+
+    def _centroid_derivatives(self, sq, wi, dsq, dwi) -> np.ndarray:
+        """(P, d, n, 2): the centroids' derivatives along d directions of the quadrature slopes
+        dsq (P, n, q, 2, d) and weights dwi (P, n, q, d): in closed form for the lenslet's own
+        centroid; with the neighbours' cross-talk by a complex step through ``_centroids``
+        (analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly)."""
+        if self._own_centroid:
+            ds = centroid_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain)
+            return np.moveaxis(ds, -1, 1)
+        eps = 1e-30
+        sq_c = sq[:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, d, n, q, 2)
+        wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, d, n, q)
+        return self._centroids(sq_c, wi_c).imag / eps
 
     def _zernike(self, a: dict) -> ZernikeResult:
         sensor = self.bench.sensor
@@ -347,50 +368,21 @@ class ForwardModel:
             a = self._aim(x, uv0, False)
             uv = a["uv"]
             t = derivatives(uv)
-        Ds = t.all_derivatives  # columns u, v, the pose directions, the lens tangents
-        nq = Ds.shape[-1] - 2  # directions q: pose, then lens
-        Ds = Ds.reshape(3, P, N, 4, nq + 2)
-        ok = np.all((t.status == OK).reshape(3, P, N), axis=0)
-        # rows X, Y, sx, sy of every derivative, each (P, N, 2 + nq): along u, v, then each direction
-        (X, Y, SX, SY), (Xu, Yu), (Xv, Yv) = (Ds[0, ..., r, :] for r in range(4)), (
-            Ds[1, ..., r, :] for r in range(2)), (Ds[2, ..., r, :] for r in range(2))
-        j00, j01, j10, j11 = X[..., 0], X[..., 1], Y[..., 0], Y[..., 1]  # J = d(X, Y)/d(u, v)
-        det = j00 * j11 - j01 * j10
+        P3 = t.all_derivatives.reshape(3, P, N, 4, -1)
+        j00, j01, j10, j11 = P3[0, ..., 0, 0], P3[0, ..., 0, 1], P3[0, ..., 1, 0], P3[0, ..., 1, 1]  # J = d(X, Y)/d(u, v)
         if a["irr"] is None:
             with np.errstate(divide="ignore", invalid="ignore"):
-                a["irr"] = self._beam(uv) / np.abs(det)
+                a["irr"] = self._beam(uv) / np.abs(j00 * j11 - j01 * j10)
         res = self._zernike(a)
-        det = np.where(ok & (det != 0), det, 1.0)
-        # the aimed (u, v) along each direction q (P, N, nq): du/dq = -J^-1 dX/dq
-        Xq, Yq = X[..., 2:], Y[..., 2:]
-        du = (-j11[..., None] * Xq + j01[..., None] * Yq) / det[..., None]
-        dv = (j10[..., None] * Xq - j00[..., None] * Yq) / det[..., None]
-        dsx = SX[..., 2:] + SX[..., :1] * du + SX[..., 1:2] * dv
-        dsy = SY[..., 2:] + SY[..., :1] * du + SY[..., 1:2] * dv
-        # second derivatives of (X, Y) by forward differences in u and v of every first derivative;
-        # total derivative of each J entry along q on the aimed path: d/dq (dX/dc) = d/dc (dX/dq)
-        HX = [(Xu - X) / _UV_STEP, (Xv - X) / _UV_STEP]  # d/du, d/dv of every derivative of X
-        HY = [(Yu - Y) / _UV_STEP, (Yv - Y) / _UV_STEP]
-
-        def total(H, c):  # d/dq of dF/d(u, v)_c
-            return H[c][..., 2:] + H[0][..., c, None] * du + H[1][..., c, None] * dv
-
-        ddet = (total(HX, 0) * j11[..., None] + j00[..., None] * total(HY, 1)
-                - total(HX, 1) * j10[..., None] - j01[..., None] * total(HY, 0))
-        w = 0.5 * self.bench.laser.beam_diameter_mm
-        # I = I_beam(u) / |det|: dI / I = -4 u.du / w^2 - d det / det
         irr = np.where(np.isfinite(a["irr"]), a["irr"], 0.0)  # a failed ray has no weight (nor derivative)
-        dirr = irr[..., None] * (-4.0 / (w * w) * (uv[..., :1] * du + uv[..., 1:] * dv) - ddet / det[..., None])
+        dsq, dirr = aimed_tangents(t, P, uv, irr, self.bench.laser.beam_diameter_mm, _UV_STEP)
+        nq = dirr.shape[-1]  # directions q: pose, then lens
         _, n_l, q = a["st"].shape
-        good = (a["st"] == OK) & ok.reshape(P, n_l, q)
+        good = (a["st"] == OK) & np.all((t.status == OK).reshape(3, P, N), axis=0).reshape(P, n_l, q)
         wi = self._weights(a)
         dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, nq), 0.0) * self.quad_weights[:, None]
-        dsq = np.where(good[..., None, None], np.stack([dsx, dsy], axis=-2).reshape(P, n_l, q, 2, nq), 0.0)
-        # complex step: centroid_slopes is analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly
-        eps = 1e-30
-        sq_c = a["sq"][:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, nq, n, q, 2)
-        wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, nq, n, q)
-        ds = self._centroids(sq_c, wi_c).imag / eps  # (P, nq, n, 2)
+        dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, nq), 0.0)
+        ds = self._centroid_derivatives(a["sq"], wi, dsq, dwi)  # (P, nq, n, 2)
         lit = (res.status == OK) & (res.irradiance > 0)
         ds = np.where(lit[:, None, :, None], ds, 0.0)
         Jall = np.swapaxes(self.pupil.fit(ds), 1, 2)  # (P, m, nq)

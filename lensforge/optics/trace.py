@@ -36,7 +36,7 @@ from .pose import right_jacobian_so3, rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
-    "AIM_TOL", "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "TraceResult",
+    "AIM_TOL", "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "aimed_tangents", "TraceResult",
 ]
 
 OK, MISSED, TIR, CLIPPED, BACKWARD, NOT_AIMED = 0, 1, 2, 3, 4, 5
@@ -223,49 +223,76 @@ def _conic_sensitivity(c, k, s, r2):
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _sag_tangent(ripple, s, x, y, gx, gy, rf, re, zb, Lc, Lk, La, Lp, Lr, j, conic):
-    """Change of the sag and of its gradient at the fixed point (x, y) of surface s along
-    the lens tangent j (dc = Lc[j, s], dk = Lk[j, s], d alpha = La[j, s], d poly =
-    Lp[j, s], d ripple (amplitude, period) = Lr[j, s]); gx, gy, rf, re, zb: the surface's
-    gradient, ripple factors and base sag there (``_sag``); conic: ``_conic_sensitivity``
-    there. Returns (dz, d dz/dx, d dz/dy)."""
+def _sag_tangents(ripple, s, x, y, gx, gy, rf, re, zb, lt, conic, n_glass, phi, w):
+    """Each lens tangent's change at the fixed point (x, y) of surface s: rows 4 s .. 4 s + 3
+    of w (8, l) receive the change of the surface height (vertex and sag), of its gradient
+    (x, y) and of the index ratio. lt: the tangents in kernel layout (``LensTangents.arrays``:
+    per surface and tangent the coefficients of the sag's terms, so height and gradient are
+    three dot products with the terms' values phi (n, 3) here); gx, gy, rf, re, zb: the
+    surface's gradient, ripple factors and base sag there (``_sag``); conic:
+    ``_conic_sensitivity`` there."""
+    C, Lr, Lzv, Ln, dims = lt
+    n_l = w.shape[1]
+    n_a = dims[0]
+    d1 = dims[1]
     r2 = x * x + y * y
-    dcs = Lc[j, s]
-    dks = Lk[j, s]
-    dz = conic[0] * dcs + conic[1] * dks
-    dD = conic[2] * dcs + conic[3] * dks  # change of the radial factor D (grad = (x, y) D + poly gradient)
-    za = 0.0
-    da = 0.0
-    for i in range(La.shape[2], 0, -1):
-        a = La[j, s, i - 1]
-        da = da * r2 + 2.0 * i * a
-        za = (za + a) * r2
-    dz += za
-    dD += da
-    pz, px, py, _, _, _ = _poly(Lp[j, s], x, y, False)
-    dz += pz
-    dgx = x * dD + px
-    dgy = y * dD + py
-    if re != 0.0 or rf != 1.0:  # ripple on the base sag z_b: z = z_b + a sin(w z_b), grad = rf grad z_b
-        gbx = gx / rf
-        gby = gy / rf
-        dz, dgx, dgy = rf * dz, rf * dgx - re * gbx * dz, rf * dgy - re * gby * dz
-    da = Lr[j, s, 0]
-    dh = Lr[j, s, 1]
-    if da != 0.0 or dh != 0.0:  # the ripple itself changes: amplitude a, period h (w = 2 pi / h)
-        a = ripple[s, 0]
-        w = 2.0 * math.pi / ripple[s, 1]
-        dw = -w * dh / ripple[s, 1]
-        sn = math.sin(w * zb)
-        cs_ = math.cos(w * zb)
-        f = 1.0 + a * w * cs_
-        gbx = gx / f
-        gby = gy / f
-        dz += sn * da + a * cs_ * zb * dw
-        df = w * cs_ * da + (a * cs_ - a * w * sn * zb) * dw  # change of rf at fixed zb
-        dgx += gbx * df
-        dgy += gby * df
-    return dz, dgx, dgy
+    # the terms: curvature, conic (value, radial gradient factor times (x, y)), alpha_i r^(2 i),
+    # then the polynomial x^p y^q (p + q <= D) in C's order
+    phi[0, 0], phi[0, 1], phi[0, 2] = conic[0], x * conic[2], y * conic[2]
+    phi[1, 0], phi[1, 1], phi[1, 2] = conic[1], x * conic[3], y * conic[3]
+    rp = 1.0  # r2^(i - 1)
+    for i in range(1, n_a + 1):
+        phi[1 + i, 0] = rp * r2
+        phi[1 + i, 1] = 2.0 * i * rp * x
+        phi[1 + i, 2] = 2.0 * i * rp * y
+        rp *= r2
+    t = 2 + n_a
+    xp = 1.0  # x^p
+    xpm = 0.0  # p x^(p - 1)
+    for p in range(d1):
+        yq = 1.0
+        yqm = 0.0  # q y^(q - 1)
+        for q in range(d1 - p):
+            phi[t, 0] = xp * yq
+            phi[t, 1] = xpm * yq
+            phi[t, 2] = xp * yqm
+            t += 1
+            yqm = (q + 1) * yq
+            yq *= y
+        xpm = (p + 1) * xp
+        xp *= x
+    rip = re != 0.0 or rf != 1.0
+    a = ripple[s, 0]
+    om = 1.0
+    sn = cs_ = 0.0
+    if a != 0.0:
+        om = 2.0 * math.pi / ripple[s, 1]
+        sn = math.sin(om * zb)
+        cs_ = math.cos(om * zb)
+    for j in range(n_l):
+        dz = 0.0
+        dgx = 0.0
+        dgy = 0.0
+        for e in range(t):
+            cj = C[s, j, e]
+            dz += cj * phi[e, 0]
+            dgx += cj * phi[e, 1]
+            dgy += cj * phi[e, 2]
+        if rip:  # ripple on the base sag z_b: z = z_b + a sin(w z_b), grad = rf grad z_b
+            dz, dgx, dgy = rf * dz, rf * dgx - re * gx / rf * dz, rf * dgy - re * gy / rf * dz
+        if a != 0.0:  # the ripple itself changes: amplitude a, period h (w = 2 pi / h)
+            da = Lr[s, j, 0]
+            dw = -om * Lr[s, j, 1] / ripple[s, 1]
+            f = 1.0 + a * om * cs_
+            dz += sn * da + a * cs_ * zb * dw
+            df = om * cs_ * da + (a * cs_ - a * om * sn * zb) * dw  # change of rf at fixed zb
+            dgx += gx / f * df
+            dgy += gy / f * df
+        w[4 * s, j] = dz + Lzv[s, j]
+        w[4 * s + 1, j] = dgx
+        w[4 * s + 2, j] = dgy
+        # mu = 1 / n entering the glass, n leaving it
+        w[4 * s + 3, j] = -Ln[j] / (n_glass * n_glass) if s == 0 else Ln[j]
 
 
 @nb.njit(cache=True, fastmath=_FM)
@@ -307,14 +334,21 @@ def _surface_tangent(t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, 
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, m0, lt):
+def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, m0, lt, w, phi):
     """Trace one ray (lens frame) through both surfaces. Returns the exit ray and status.
 
     tan (m, 6): tangents (d origin, d direction) of the entering ray along m directions,
-    replaced in place by those of the exit ray (meaningful when the status is OK). Rows
-    m0.. are lens tangents j = row - m0 when lt = (Lc, Lk, La, Lp, Lr, Lzv, Ln): the
-    lens's kernel arrays change by row j of each (curvature, conic, aspheric, polynomial,
-    ripple, vertex z, index). lt = None (no lens tangents) compiles without that code.
+    replaced in place by those of the exit ray (meaningful when the status is OK).
+    lt = (Lc, Lk, La, Lp, Lr, Lzv, Ln): l lens tangents in kernel layout
+    (``LensTangents.arrays``), tangent j the change of the lens's kernel arrays
+    (curvature, conic, aspheric, polynomial, ripple, vertex z, index);
+    lt = None (no lens tangents) compiles without that code. A lens tangent reaches the
+    ray only through what it changes where the ray meets each surface s: the surface's
+    height, its gradient and the index ratio (4 numbers, ``_sag_tangents``), and the ray's
+    tangent is linear in those. So rows m0 .. m0 + 7 carry the 8 unit changes (4 per
+    surface; rows of surface 1 are zero until the ray reaches it) and w (8, l) receives
+    each lens tangent's 8 changes: tangent j of the exit ray = sum_b w[b, j] tan[m0 + b]
+    (``_trace_one`` combines them at the sensor). 8 propagated directions instead of l.
     """
     n_in = 1.0
     for s in range(2):
@@ -360,20 +394,18 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
             return ox, oy, oz, dx, dy, dz, 2
         sk = math.sqrt(kk)
         g = sk - mu * ci
-        conic = (0.0, 0.0, 0.0, 0.0)
-        if lt is not None:
-            conic = _conic_sensitivity(c, k, s, x * x + y * y)
+        if lt is not None:  # each lens tangent's change of height, gradient and index ratio here
+            _sag_tangents(ripple, s, x, y, gx, gy, rf, re, zb, lt, _conic_sensitivity(c, k, s, x * x + y * y),
+                          n_glass, phi, w)
         for j in range(tan.shape[0]):
-            if lt is not None and j >= m0:
-                L = j - m0
-                dsurf, dgxp, dgyp = _sag_tangent(ripple, s, x, y, gx, gy, rf, re, zb, lt[0], lt[1], lt[2],
-                                                 lt[3], lt[4], L, conic)
-                # mu = 1 / n entering the glass, n leaving it
-                dmu = -lt[6][L] / (n_glass * n_glass) if s == 0 else lt[6][L]
+            b = j - m0 - 4 * s  # the unit change b of this surface (rows of the other surface: b < 0 or > 3)
+            if lt is not None and 0 <= b < 4:
                 (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
                     t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
-                    tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5],
-                    (dsurf + lt[5][L, s], dgxp, dgyp, dmu))
+                    0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                    (1.0 if b == 0 else 0.0, 1.0 if b == 1 else 0.0, 1.0 if b == 2 else 0.0, 1.0 if b == 3 else 0.0))
+            elif lt is not None and j >= m0 + 4 * (s + 1):
+                continue  # surface 1's unit changes: no tangent before the ray reaches it
             else:
                 (tan[j, 0], tan[j, 1], tan[j, 2], tan[j, 3], tan[j, 4], tan[j, 5]) = _surface_tangent(
                     t, dx, dy, dz, fp, gx, gy, hxx, hxy, hyy, inv, nx, ny, nz, mu, ci, sk, g,
@@ -411,12 +443,12 @@ def _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN):
 
 @nb.njit(cache=True, fastmath=_FM)
 def _trace_one(u, v, R, t, dT, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass,
-               tan, dout):
+               tan, dout, w, g8, phi):
     """Trace the beam ray with transverse coordinates (u, v) for one pose (R, t).
 
     Returns sensor-plane x, y, direction L, M, N (in {S}) and status. dT (m, 3, 4): the
-    derivatives of [R | t] along m pose directions; lt: the lens tangents (Lc, Lk, La,
-    Lp, Lzv, Ln) of ``_trace_lens`` (l rows); tan (2 + m + l, 6): scratch; dout
+    derivatives of [R | t] along m pose directions; lt: the l lens tangents of ``_trace_lens``; tan (2 + m + 8, 6) (2 + m without lens
+    tangents), w (8, l), g8 (8, 4), phi (n, 3) (``_sag_tangents``): scratch; dout
     (2 + m + l, 4) receives d(x, y, L/N, M/N) along u, v, each pose direction and each
     lens tangent (the beam ray fixed in {S}).
     """
@@ -452,7 +484,7 @@ def _trace_one(u, v, R, t, dT, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, p
             tan[j, 2] = a2 - b2
             tan[j, 3], tan[j, 4], tan[j, 5] = _rotate_t(D, dSx, dSy, dSz)
     ox, oy, oz, dx, dy, dz, st = _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, ap_r,
-                                             n_glass, tan, m0, lt)
+                                             n_glass, tan, m0, lt, w, phi)
     if st != 0:
         return 0.0, 0.0, 0.0, 0.0, 1.0, st
     # back to {S}
@@ -477,7 +509,18 @@ def _trace_one(u, v, R, t, dT, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, p
             dL += a0
             dM += a1
             dN += a2
-        dout[j, 0], dout[j, 1], dout[j, 2], dout[j, 3] = _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN)
+        if j < m0:
+            dout[j, 0], dout[j, 1], dout[j, 2], dout[j, 3] = _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz, dL, dM, dN)
+        else:  # a unit change at a surface
+            g8[j - m0, 0], g8[j - m0, 1], g8[j - m0, 2], g8[j - m0, 3] = _plane_tangent(pz, L, M, N, s, dpx, dpy, dpz,
+                                                                                      dL, dM, dN)
+    if lt is not None:  # each lens tangent: its changes at the two surfaces times the unit changes' effects
+        for L_ in range(w.shape[1]):
+            for r in range(4):
+                acc = 0.0
+                for b in range(8):
+                    acc += w[b, L_] * g8[b, r]
+                dout[m0 + L_, r] = acc
     return px + s * L, py + s * M, L, M, N, 0
 
 
@@ -491,15 +534,21 @@ def _trace_grid(uv, Rs, ts, dTs, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
     along u, v, the m pose directions dTs (P, m, 3, 4) and the l lens tangents lt."""
     n_p = Rs.shape[0]
     n_r = uv.shape[1]
-    m = 2 + dTs.shape[1] + (0 if lt is None else lt[6].shape[0])
+    n_l = 0 if lt is None else lt[3].shape[0]
+    n_phi = 0 if lt is None else lt[0].shape[2]
+    m = 2 + dTs.shape[1] + (0 if lt is None else 8)  # lens tangents: 8 unit changes (``_trace_lens``)
     total = n_p * n_r
     for chunk in nb.prange((total + _CHUNK - 1) // _CHUNK):
         tan = np.empty((m, 6))
+        w = np.empty((8, n_l))
+        g8 = np.empty((8, 4))
+        phi = np.empty((n_phi, 3))
         for idx in range(chunk * _CHUNK, min(total, (chunk + 1) * _CHUNK)):
             p = idx // n_r
             i = idx - p * n_r
             x, y, L, M, N, st = _trace_one(uv[p, i, 0], uv[p, i, 1], Rs[p], ts[p], dTs[p], lt, z0, bx, by, bsx, bsy,
-                                           c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, deriv[p, i])
+                                           c, k, alpha, n_alpha, poly, ripple, zv, ap_r, n_glass, tan, deriv[p, i],
+                                           w, g8, phi)
             out[p, i, 0] = x
             out[p, i, 1] = y
             out[p, i, 2] = L
@@ -512,8 +561,8 @@ def _trace_grid(uv, Rs, ts, dTs, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha,
 
 @nb.njit(cache=True, fastmath=_FM)
 def _aim_one(p, i, targets, u0, Rs, ts, no_pose, no_lens, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, ripple,
-             zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d):
-    """Aim the ray of target i at pose p (``_aim``); tan, d: scratch."""
+             zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d, w, g8, phi):
+    """Aim the ray of target i at pose p (``_aim``); tan, d, w, g8, phi: scratch."""
     u = u0[p, i, 0]
     v = u0[p, i, 1]
     X = targets[i, 0]
@@ -525,7 +574,7 @@ def _aim_one(p, i, targets, u0, Rs, ts, no_pose, no_lens, z0, bx, by, bsx, bsy, 
     det = 0.0
     for it in range(maxit):
         x, y, L, M, N, s0 = _trace_one(u, v, Rs[p], ts[p], no_pose, no_lens, z0, bx, by, bsx, bsy, c, k, alpha,
-                                       n_alpha, poly, ripple, zv, ap_r, n_glass, tan, d)
+                                       n_alpha, poly, ripple, zv, ap_r, n_glass, tan, d, w, g8, phi)
         traced += 1
         if s0 != 0:
             st = s0
@@ -578,9 +627,12 @@ def _aim(targets, u0, Rs, ts, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, poly, 
     for chunk in nb.prange((total + _CHUNK - 1) // _CHUNK):
         tan = np.empty((2, 6))
         d = np.empty((2, 4))
+        w = np.empty((8, 0))
+        g8 = np.empty((8, 4))
+        phi = np.empty((0, 3))
         for idx in range(chunk * _CHUNK, min(total, (chunk + 1) * _CHUNK)):
             _aim_one(idx // n_t, idx % n_t, targets, u0, Rs, ts, no_pose, None, z0, bx, by, bsx, bsy, c, k, alpha,
-                     n_alpha, poly, ripple, zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d)
+                     n_alpha, poly, ripple, zv, ap_r, n_glass, tol, maxit, out, status, counts, tan, d, w, g8, phi)
 
 
 # ----------------------------------------------------------------------------- Python API
@@ -660,8 +712,16 @@ class LensTangents:
         return self.dn.shape[0]
 
     def arrays(self) -> tuple:
-        return (_arr(self.dc), _arr(self.dk), _arr(self.dalpha), _arr(self.dpoly), _arr(self.dripple), _arr(self.dzv),
-                _arr(self.dn))
+        """The kernel layout (``_sag_tangents``): (C (2, l, n), ripple (2, l, 2), vertex z (2, l),
+        index (l,), (n_alpha, D + 1)) with C[s, j] the coefficients of surface s's sag terms
+        along tangent j: curvature, conic, alpha_1.., then poly[p, q] for p + q <= D."""
+        d1 = self.dpoly.shape[2]
+        p, q = np.divmod(np.arange(d1 * d1), d1)
+        tri = p + q < d1  # row-major (p, then q): the order _sag_tangents fills its terms in
+        C = np.concatenate([self.dc[..., None], self.dk[..., None], self.dalpha,
+                            self.dpoly.reshape(self.size, 2, d1 * d1)[..., tri]], axis=2)
+        return (_arr(np.swapaxes(C, 0, 1)), _arr(np.swapaxes(self.dripple, 0, 1)), _arr(self.dzv.T), _arr(self.dn),
+                _arr(np.array([self.dalpha.shape[2], d1]), np.int64))
 
 
 _NO_TANGENTS = LensTangents(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2, 8)), np.zeros((0, 2, 1, 1)),
@@ -766,3 +826,83 @@ def aim_rays(bench: Bench, lens: Lens, poses, targets, u0=None, kernel: LensKern
         _aim(targets, u0, Rs, ts, *_beam_args(bench, lens), *_kernel_args(kern), float(tol), int(maxit),
              out, status, counts)
     return out[..., :2], out[..., 2:4], out[..., 4], status, int(counts.sum())
+
+
+@nb.njit(cache=True, parallel=True, fastmath=_FM)
+def _aimed_tangents(D, ok, uv, irr, w_beam, h, dsq, dwi):
+    """The aimed rays' tangents (``aimed_tangents``): D (3, P, N, m, 4) the traced derivatives
+    of the aimed rays and of copies displaced by h in u and in v, ok (P, N), uv (P, N, 2),
+    irr (P, N) (0 where a ray failed); dsq (P, N, 2, m - 2) and dwi (P, N, m - 2) receive the
+    slope and irradiance derivatives along each direction q (0 where not ok)."""
+    n_p = D.shape[1]
+    n_r = D.shape[2]
+    nq = D.shape[3] - 2
+    c4 = -4.0 / (w_beam * w_beam)
+    for p in nb.prange(n_p):
+        for i in range(n_r):
+            A = D[0, p, i]
+            if not ok[p, i]:
+                for q in range(nq):
+                    dsq[p, i, 0, q] = 0.0
+                    dsq[p, i, 1, q] = 0.0
+                    dwi[p, i, q] = 0.0
+                continue
+            U = D[1, p, i]
+            V = D[2, p, i]
+            j00, j01, j10, j11 = A[0, 0], A[1, 0], A[0, 1], A[1, 1]  # J = d(X, Y)/d(u, v)
+            det = j00 * j11 - j01 * j10
+            if det == 0.0:
+                det = 1.0
+            # second derivatives of X, Y along u (H?0) and v (H?1) of the u, v columns
+            hx00 = (U[0, 0] - A[0, 0]) / h
+            hx01 = (U[1, 0] - A[1, 0]) / h
+            hx10 = (V[0, 0] - A[0, 0]) / h
+            hx11 = (V[1, 0] - A[1, 0]) / h
+            hy00 = (U[0, 1] - A[0, 1]) / h
+            hy01 = (U[1, 1] - A[1, 1]) / h
+            hy10 = (V[0, 1] - A[0, 1]) / h
+            hy11 = (V[1, 1] - A[1, 1]) / h
+            u0 = uv[p, i, 0]
+            v0 = uv[p, i, 1]
+            I = irr[p, i]
+            for q in range(nq):
+                c = q + 2
+                Xq = A[c, 0]
+                Yq = A[c, 1]
+                du = (-j11 * Xq + j01 * Yq) / det  # du/dq = -J^-1 dX/dq
+                dv = (j10 * Xq - j00 * Yq) / det
+                dsq[p, i, 0, q] = A[c, 2] + A[0, 2] * du + A[1, 2] * dv
+                dsq[p, i, 1, q] = A[c, 3] + A[0, 3] * du + A[1, 3] * dv
+                # d/dq of each J entry on the aimed path: d/dq (dX/dc) = d/dc (dX/dq)
+                tx0 = (U[c, 0] - Xq) / h + hx00 * du + hx10 * dv
+                tx1 = (V[c, 0] - Xq) / h + hx01 * du + hx11 * dv
+                ty0 = (U[c, 1] - Yq) / h + hy00 * du + hy10 * dv
+                ty1 = (V[c, 1] - Yq) / h + hy01 * du + hy11 * dv
+                ddet = tx0 * j11 + j00 * ty1 - tx1 * j10 - j01 * ty0
+                # I = I_beam(u) / |det|: dI / I = -4 u.du / w^2 - d det / det
+                dwi[p, i, q] = I * (c4 * (u0 * du + v0 * dv) - ddet / det)
+
+
+def aimed_tangents(t: TraceResult, n_aimed: int, uv: np.ndarray, irr: np.ndarray, beam_diameter_mm: float,
+                   h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Slope and irradiance derivatives of aimed rays, each held on its target, along every
+    direction q of a trace (poses, lens tangents).
+
+    t: the trace of 3 n_aimed poses (``trace_rays``): the aimed rays uv (P, N, 2), then the
+    same displaced by h in u, then in v. With J = d(X, Y)/d(u, v) the aimed (u, v) move by
+    du/dq = -J^-1 dX/dq (implicit function theorem) and the slope by ds/dq + ds/d(u, v) du/dq;
+    the irradiance I = I_beam(u) / |det J| (irr (P, N), 0 where a ray failed) by
+    dI/I = -4 u.du / w^2 - d(det J)/det J, whose second derivatives come from the displaced
+    copies' first ones, with d/dq (dX/du) = d/du (dX/dq). Returns (dsq (P, N, 2, nq), dI (P, N, nq)),
+    zero where any of the three rays failed."""
+    P = n_aimed
+    N = uv.shape[1]
+    D = np.swapaxes(t.all_derivatives, -1, -2)  # the kernel's own (3 P, N, m, 4) layout
+    D = _arr(D.reshape(3, P, N, D.shape[-2], 4))
+    ok = _arr(np.all((t.status == OK).reshape(3, P, N), axis=0), np.bool_)
+    nq = D.shape[3] - 2
+    dsq = np.empty((P, N, 2, nq))
+    dwi = np.empty((P, N, nq))
+    with kernel_threads():
+        _aimed_tangents(D, ok, _arr(uv), _arr(irr), float(0.5 * beam_diameter_mm), float(h), dsq, dwi)
+    return dsq, dwi
