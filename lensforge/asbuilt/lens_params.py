@@ -209,12 +209,17 @@ def lens_tangents(build, x0, directions, wavelength_nm: float, step: float = 1e-
 
 def elementary_jacobian(bench, space: LensSpace, poses) -> np.ndarray:
     """Whitened, prior-scaled dh/dp (P, m, d) at the mean lens over poses (P, 6): the
-    forward model's exact derivative along each elementary deviation (one sigma_p each)."""
+    forward model's exact derivative along each elementary deviation (one sigma_p each; a
+    deviation the tolerances hold at zero has a zero column, and none is traced)."""
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     model = ForwardModel(bench, space.build(space.mean), validate=False)
-    lt = lens_tangents(space.build, space.mean, np.diag(space.sigma), bench.laser.wavelength_nm)
-    _, J, _ = model.jacobians(poses, lens_tangents=lt)
-    return np.einsum("ij,pjd->pid", model.whitener, J)
+    free = np.flatnonzero(space.sigma)
+    out = np.zeros((len(poses), model.whitener.shape[0], space.size))
+    if free.size:
+        lt = lens_tangents(space.build, space.mean, np.diag(space.sigma)[free], bench.laser.wavelength_nm)
+        _, J, _ = model.jacobians(poses, lens_tangents=lt)
+        out[..., free] = np.einsum("ij,pjd->pid", model.whitener, J)
+    return out
 
 
 def parameterise(bench, lens: Lens, tolerances, poses, keep_threshold: float = 0.1,
@@ -224,16 +229,19 @@ def parameterise(bench, lens: Lens, tolerances, poses, keep_threshold: float = 0
     value exceeds keep_threshold (at most max_directions). as_designed: the lens known as
     designed: no directions, and theta's (empty) origin is the design itself, not the
     tolerance model's mean as-built lens (which a model with systematic deviations, e.g.
-    the print's shrinkage, moves off the design)."""
+    the print's shrinkage, moves off the design); no Jacobian is traced (singular_values
+    empty, theta_jacobian None)."""
     space = lens_space(lens, tolerances)
+    poses = np.atleast_2d(np.asarray(poses, dtype=float)).copy()
     if as_designed:
         space = replace(space, mean=np.zeros_like(space.mean))
-        max_directions = 0
+        return LensParameterisation(space=space, V=np.zeros((space.size, 0)), singular_values=np.zeros(0),
+                                    keep_threshold=keep_threshold, poses=poses, theta_jacobian=None)
     J = elementary_jacobian(bench, space, poses)
     _, s, Vt = np.linalg.svd(J.reshape(-1, space.size), full_matrices=False)
     k = int(np.sum(s > keep_threshold))
     if max_directions is not None:
         k = min(k, int(max_directions))
     V = Vt[:k].T.copy()
-    return LensParameterisation(space=space, V=V, singular_values=s, keep_threshold=keep_threshold,
-                                poses=np.atleast_2d(np.asarray(poses, dtype=float)).copy(), theta_jacobian=J @ V)
+    return LensParameterisation(space=space, V=V, singular_values=s, keep_threshold=keep_threshold, poses=poses,
+                                theta_jacobian=J @ V)
