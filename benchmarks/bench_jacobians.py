@@ -3,9 +3,10 @@
     OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python benchmarks/bench_jacobians.py [DESIGN] [--poses 24]
 
 Times ``ForwardModel.jacobians`` at the study's plan (``calibration_plan``) on one core, with the
-pose directions only (pose estimation) and with the as-built lens's theta tangents (each joint
-calibration iteration), and how much of each is the ray trace (``trace_rays``: the aimed rays and
-their u- and v-displaced copies) and how much the rest (aimed-ray tangents, centroid derivatives,
+pose directions only (pose estimation), with the as-built lens's theta tangents (the joint
+calibration's covariance) and the same as iteration Jacobians (exact=False), and how much of each
+is the ray trace (``trace_rays``: the aimed rays and their u- and v-displaced copies, or the aimed
+rays alone for exact=False) and how much the rest (aimed-ray tangents, centroid derivatives,
 Zernike fit). Median of --repeats calls, CPU time. DESIGN: a design JSON or a paper lens name
 (default: the paper's polynomial lens on the built-in bench).
 """
@@ -51,7 +52,9 @@ def main() -> None:
     model.jacobians(plan[:1], lens_tangents=lt)  # compile / warm
     n_rays = model.targets.shape[0]
     print(f"{a.design}: {a.poses} poses x {n_rays} aimed rays, theta {param.k} directions")
-    for name, kw in (("pose directions", {}), (f"pose + {param.k} lens tangents", {"lens_tangents": lt})):
+    cases = (("pose directions", {}), (f"pose + {param.k} lens tangents", {"lens_tangents": lt}),
+             (f"pose + {param.k} lens tangents, iteration (exact=False)", {"lens_tangents": lt, "exact": False}))
+    for name, kw in cases:
         total, traced = [], []
         for _ in range(a.repeats):
             trace_cpu[0] = 0.0

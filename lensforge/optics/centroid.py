@@ -44,8 +44,8 @@ import numpy as np
 
 from .bench import CROSSTALK_MODELS, Sensor
 
-__all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "centroid_slope_derivatives", "CROSSTALK_MODELS", "crosstalk_shift", "reference_shift",
-           "local_field", "crosstalk_slopes"]
+__all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "centroid_slope_derivatives", "CROSSTALK_MODELS",
+           "crosstalk_shift", "reference_shift", "local_field", "crosstalk_slopes"]
 
 
 @lru_cache(maxsize=8)
@@ -132,7 +132,8 @@ def centroid_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray, 
     dtot = dwi.sum(axis=-2)[..., None, :]  # (..., 1, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_w = (np.einsum("...q,...qk->...k", wi, sq) / tot)[..., None]  # (..., 2, 1)
-        ds_w = (np.einsum("...qd,...qk->...kd", dwi, sq) + np.einsum("...q,...qkd->...kd", wi, dsq) - s_w * dtot) / tot[..., None]
+        ds_w = (np.einsum("...qd,...qk->...kd", dwi, sq) + np.einsum("...q,...qkd->...kd", wi, dsq)
+                - s_w * dtot) / tot[..., None]
     ds_u = np.einsum("q,...qkd->...kd", weights, dsq)
     g_d, g_c = gains
     m2 = weights @ offsets**2

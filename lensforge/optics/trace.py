@@ -36,7 +36,8 @@ from .pose import right_jacobian_so3, rotations, skew
 
 __all__ = [
     "OK", "MISSED", "TIR", "CLIPPED", "BACKWARD", "NOT_AIMED", "STATUS_NAMES",
-    "AIM_TOL", "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives", "trace_rays", "aim_rays", "aimed_tangents", "TraceResult",
+    "AIM_TOL", "LensKernel", "lens_kernel", "LensTangents", "kernel_tangents", "pose_frames", "pose_frame_derivatives",
+    "trace_rays", "aim_rays", "aimed_tangents", "TraceResult",
 ]
 
 OK, MISSED, TIR, CLIPPED, BACKWARD, NOT_AIMED = 0, 1, 2, 3, 4, 5
@@ -447,8 +448,9 @@ def _trace_one(u, v, R, t, dT, lt, z0, bx, by, bsx, bsy, c, k, alpha, n_alpha, p
     """Trace the beam ray with transverse coordinates (u, v) for one pose (R, t).
 
     Returns sensor-plane x, y, direction L, M, N (in {S}) and status. dT (m, 3, 4): the
-    derivatives of [R | t] along m pose directions; lt: the l lens tangents of ``_trace_lens``; tan (2 + m + 8, 6) (2 + m without lens
-    tangents), w (8, l), g8 (8, 4), phi (n, 3) (``_sag_tangents``): scratch; dout
+    derivatives of [R | t] along m pose directions; lt: the l lens tangents of
+    ``_trace_lens``; tan (2 + m + 8, 6) (2 + m without lens tangents), w (8, l), g8 (8, 4),
+    phi (n, 3) (``_sag_tangents``): scratch; dout
     (2 + m + l, 4) receives d(x, y, L/N, M/N) along u, v, each pose direction and each
     lens tangent (the beam ray fixed in {S}).
     """
@@ -833,7 +835,9 @@ def _aimed_tangents(D, ok, uv, irr, w_beam, h, dsq, dwi):
     """The aimed rays' tangents (``aimed_tangents``): D (3, P, N, m, 4) the traced derivatives
     of the aimed rays and of copies displaced by h in u and in v, ok (P, N), uv (P, N, 2),
     irr (P, N) (0 where a ray failed); dsq (P, N, 2, m - 2) and dwi (P, N, m - 2) receive the
-    slope and irradiance derivatives along each direction q (0 where not ok)."""
+    slope and irradiance derivatives along each direction q (0 where not ok). D (1, P, N, m, 4),
+    the aimed rays alone: no change of det J (``aimed_tangents``)."""
+    second = D.shape[0] == 3
     n_p = D.shape[1]
     n_r = D.shape[2]
     nq = D.shape[3] - 2
@@ -847,13 +851,13 @@ def _aimed_tangents(D, ok, uv, irr, w_beam, h, dsq, dwi):
                     dsq[p, i, 1, q] = 0.0
                     dwi[p, i, q] = 0.0
                 continue
-            U = D[1, p, i]
-            V = D[2, p, i]
+            U = D[1, p, i] if second else A
+            V = D[2, p, i] if second else A
             j00, j01, j10, j11 = A[0, 0], A[1, 0], A[0, 1], A[1, 1]  # J = d(X, Y)/d(u, v)
             det = j00 * j11 - j01 * j10
             if det == 0.0:
                 det = 1.0
-            # second derivatives of X, Y along u (H?0) and v (H?1) of the u, v columns
+            # second derivatives of X, Y along u (H?0) and v (H?1) of the u, v columns (0 without copies)
             hx00 = (U[0, 0] - A[0, 0]) / h
             hx01 = (U[1, 0] - A[1, 0]) / h
             hx10 = (V[0, 0] - A[0, 0]) / h
@@ -889,17 +893,19 @@ def aimed_tangents(t: TraceResult, n_aimed: int, uv: np.ndarray, irr: np.ndarray
     direction q of a trace (poses, lens tangents).
 
     t: the trace of 3 n_aimed poses (``trace_rays``): the aimed rays uv (P, N, 2), then the
-    same displaced by h in u, then in v. With J = d(X, Y)/d(u, v) the aimed (u, v) move by
-    du/dq = -J^-1 dX/dq (implicit function theorem) and the slope by ds/dq + ds/d(u, v) du/dq;
-    the irradiance I = I_beam(u) / |det J| (irr (P, N), 0 where a ray failed) by
-    dI/I = -4 u.du / w^2 - d(det J)/det J, whose second derivatives come from the displaced
-    copies' first ones, with d/dq (dX/du) = d/du (dX/dq). Returns (dsq (P, N, 2, nq), dI (P, N, nq)),
-    zero where any of the three rays failed."""
+    same displaced by h in u, then in v (or of the aimed rays alone: d(det J)/dq is then left
+    out, the weights move with the beam profile only, an approximation for iterations). With
+    J = d(X, Y)/d(u, v) the aimed (u, v) move by du/dq = -J^-1 dX/dq (implicit function
+    theorem) and the slope by ds/dq + ds/d(u, v) du/dq; the irradiance I = I_beam(u) / |det J|
+    (irr (P, N), 0 where a ray failed) by dI/I = -4 u.du / w^2 - d(det J)/det J, whose second
+    derivatives come from the displaced copies' first ones, with d/dq (dX/du) = d/du (dX/dq).
+    Returns (dsq (P, N, 2, nq), dI (P, N, nq)), zero where any traced copy of the ray failed."""
     P = n_aimed
     N = uv.shape[1]
     D = np.swapaxes(t.all_derivatives, -1, -2)  # the kernel's own (3 P, N, m, 4) layout
-    D = _arr(D.reshape(3, P, N, D.shape[-2], 4))
-    ok = _arr(np.all((t.status == OK).reshape(3, P, N), axis=0), np.bool_)
+    copies = t.status.shape[0] // P if P else 1
+    D = _arr(D.reshape(copies, P, N, D.shape[-2], 4))
+    ok = _arr(np.all((t.status == OK).reshape(copies, P, N), axis=0), np.bool_)
     nq = D.shape[3] - 2
     dsq = np.empty((P, N, 2, nq))
     dwi = np.empty((P, N, nq))
