@@ -193,3 +193,8 @@ def test_a_sample_grid_that_aliases_the_field_is_refused(codesign_model):
     # ~100 mrad slopes: 2 samples per pixel alias the phase (Z4 was 2600 sigma off; 4, 6 and 8 agree)
     with pytest.raises(ConfigError, match="samples_per_pixel 2 under-samples.*>= 4"):
         physical_measure(codesign_model, CORNER, PhysicalSensor(samples_per_pixel=2))
+    # what the session simulator uses instead: raised to the need, never lowered
+    bench = codesign_model.bench
+    assert PhysicalSensor(samples_per_pixel=2).sampled_for(bench, 0.11).samples_per_pixel == 4
+    assert PhysicalSensor(samples_per_pixel=2).sampled_for(bench, 0.02).samples_per_pixel == 2
+    assert PhysicalSensor(samples_per_pixel=6).sampled_for(bench, 0.11).samples_per_pixel == 6

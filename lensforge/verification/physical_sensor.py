@@ -38,7 +38,7 @@ Cost: ~1-3 s per pose on one core (two FFTs of ~1700^2 at the defaults).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -52,7 +52,8 @@ from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, aim_rays, trace_rays
 
 __all__ = ["PhysicalSensor", "PhysicalMeasurement", "MlaField", "physical_measure", "physical_session_slopes", "field_slopes",
-           "ray_field", "plane_field", "spot_centroids", "reference_centroids", "lit_box"]
+           "ray_field", "plane_field", "spot_centroids", "reference_centroids", "lit_box", "samples_needed",
+           "field_max_slope"]
 
 APERTURES = ("square", "round")
 
@@ -65,8 +66,9 @@ class PhysicalSensor:
     aperture, 140 um (MLA150-5C spec sheet as cited in issue 21); samples_per_pixel:
     field samples per camera pixel and axis (4: 1.375 um; the modes move by <= 0.4 sigma
     from 4 to 5 and by up to 3 sigma from 2 to 4 on the paper's polynomial lens: the lenslet
-    edges' diffraction needs fine samples); margin_lenslets: lit lenslets beyond the pupil
-    lenslets' box; oversample: sub-sample shifts per axis of the camera field for the
+    edges' diffraction needs fine samples; a field whose phase it would alias is refused,
+    ``samples_needed``; the session simulator raises it to its slopes' need, ``sampled_for``);
+    margin_lenslets: lit lenslet rings beyond each pupil lenslet; oversample: sub-sample shifts per axis of the camera field for the
     pixel integral (``_camera_intensity``); pad_mm: zero padding of the propagation grid; potential_degree,
     ray_grid: the ray-field fit; reference: 'factory' or 'beam' (see the module);
 
@@ -99,6 +101,11 @@ class PhysicalSensor:
             raise ConfigError(f"physical sensor reference: must be 'factory' or 'beam', got {self.reference!r}")
         if self.samples_per_pixel < 1 or self.margin_lenslets < 1 or self.potential_degree < 2:
             raise ConfigError("physical sensor: samples_per_pixel >= 1, margin_lenslets >= 1, potential_degree >= 2")
+
+    def sampled_for(self, bench: Bench, max_slope: float) -> "PhysicalSensor":
+        """These settings with samples_per_pixel raised, if need be, to resolve rays sloping up to
+        max_slope (``samples_needed``)."""
+        return replace(self, samples_per_pixel=max(self.samples_per_pixel, samples_needed(bench, self, max_slope)))
 
     def focal(self, sensor: Sensor) -> float:
         return float(self.focal_mm if self.focal_mm is not None else sensor.lenslet_focal_mm)
@@ -285,10 +292,11 @@ def _box_mask(x, sensor, cx, cy):
     return mx, my
 
 
-def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
-    """The field the posed lens delivers on the lit lenslet box, from the exact ray trace (module step 1)."""
+def _field_rays(model: ForwardModel, pose, cfg: PhysicalSensor) -> dict:
+    """The traced ray grid behind the lit lenslets (``ray_field``): landing points X, unit directions d,
+    |det d(X, Y)/d(u, v)|, beam irradiance, the rays to fit (``fit``: the lit lenslets and a one-pitch
+    collar) and those on the lit lenslets (``lit``), the box (centre, half-size h, lenslet coordinates)."""
     bench, sensor = model.bench, model.bench.sensor
-    lam = bench.laser.wavelength_nm * 1e-6
     pose = np.asarray(pose, dtype=float).reshape(1, 6)
     cx, cy = lit_box(sensor, cfg, model.pupil.centres)
     p = sensor.pitch_mm
@@ -319,17 +327,34 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     # lens's edge bends the rays steeply, spoil a global fit (on the co-designed bench 0.2 mrad RMS
     # inside the pupil and 26 mrad at the corners at degree 14; 2.5e-9 rad at degree 20 without them)
     inside = np.all(np.abs(X - centre) <= h * 1.05, axis=1)
-    near = _pupil_distance(X, model.pupil.centres) <= (cfg.margin_lenslets + 1.0) * p
-    ok = (tr.status[0] == OK) & inside & near & (det > 0)
-    # the sampled field must resolve its phase: the local ray slope plus the lenslet's own up to
-    # its edge, at most pi / 1.5 per sample (spp 2 aliased the co-designed bench's 100 mrad: Z4
-    # off by 2600 sigma; spp 4, 6 and 8 agree within 1 sigma there)
-    s_max = float(np.max(np.abs(d[ok, :2] / d[ok, 2:3]), initial=0.0)) + 0.5 * p / cfg.focal(sensor)
-    need = int(np.ceil(3.0 * s_max * sensor.pixel_mm / lam))
+    dist = _pupil_distance(X, model.pupil.centres)
+    fit = (tr.status[0] == OK) & inside & (dist <= (cfg.margin_lenslets + 1.0) * p) & (det > 0)
+    return {"X": X, "d": d, "det": det, "I_beam": I_beam, "fit": fit,
+            "lit": fit & (dist <= (cfg.margin_lenslets + 0.5) * p), "centre": centre, "h": h, "cx": cx, "cy": cy}
+
+
+def field_max_slope(model: ForwardModel, pose, cfg: PhysicalSensor) -> float:
+    """Largest ray slope (tan, either axis) on the lit lenslets at ``pose``: what the field's sampling
+    must resolve (``samples_needed``). Traces the ray grid only."""
+    r = _field_rays(model, pose, cfg)
+    d = r["d"][r["lit"]]
+    return float(np.max(np.abs(d[:, :2] / d[:, 2:3]), initial=0.0))
+
+
+def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
+    """The field the posed lens delivers on the lit lenslet box, from the exact ray trace (module step 1)."""
+    bench, sensor = model.bench, model.bench.sensor
+    lam = bench.laser.wavelength_nm * 1e-6
+    r = _field_rays(model, pose, cfg)
+    X, d, det, I_beam, ok = r["X"], r["d"], r["det"], r["I_beam"], r["fit"]
+    centre, h, cx, cy = r["centre"], r["h"], r["cx"], r["cy"]
+    # the sampled field must resolve its phase (``samples_needed``)
+    lit_d = d[r["lit"]]
+    s_max = float(np.max(np.abs(lit_d[:, :2] / lit_d[:, 2:3]), initial=0.0))
+    need = samples_needed(bench, cfg, s_max)
     if cfg.samples_per_pixel < need:
         raise ConfigError(f"physical sensor: samples_per_pixel {cfg.samples_per_pixel} under-samples the field's "
-                          f"phase (largest ray slope {1e3 * (s_max - 0.5 * p / cfg.focal(sensor)):.0f} mrad): "
-                          f"use samples_per_pixel >= {need}")
+                          f"phase (largest ray slope {1e3 * s_max:.0f} mrad): use samples_per_pixel >= {need}")
     xi, eta = (X[ok, 0] - centre[0]) / h[0], (X[ok, 1] - centre[1]) / h[1]
     if not np.all(np.abs(xi) <= 1.05) or ok.sum() < 10 * cfg.potential_degree**2:
         raise ConfigError("physical sensor: too few rays over the lit lenslet box (the lens clips the beam?)")
@@ -353,6 +378,17 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     Mc = np.einsum("nb,ba,na->n", vy @ D, Cs, vx) / h[1]
     Nc = np.sqrt(np.clip(1 - Lc**2 - Mc**2, 1e-12, None))
     return MlaField(x, E, np.stack([Lc / Nc, Mc / Nc], 1), rms, mx)
+
+
+def samples_needed(bench: Bench, cfg: PhysicalSensor, max_slope: float) -> int:
+    """Fewest samples per pixel that resolve the phase of a field whose rays slope up to max_slope
+    (tan) over the lit lenslets: with the lenslet's own phase to its edge, at most pi / 1.5 per
+    sample (spp 2 aliased the co-designed bench's 100 mrad, Z4 off by 2600 sigma, where spp 4, 6
+    and 8 agree within 1 sigma; on the paper Zernike lens's 56 mrad spp 2 was 15 sigma off spp 4,
+    spp 3 within 1.5)."""
+    sensor = bench.sensor
+    s = abs(float(max_slope)) + 0.5 * sensor.pitch_mm / cfg.focal(sensor)
+    return int(np.ceil(3.0 * s * sensor.pixel_mm / (bench.laser.wavelength_nm * 1e-6)))
 
 
 def _pupil_distance(X: np.ndarray, centres: np.ndarray) -> np.ndarray:

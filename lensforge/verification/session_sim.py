@@ -51,7 +51,7 @@ from ..optics.lens import LensSpec, resolve_lens
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix, rotvecs
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.zernike import to_thorlabs_vector
-from .physical_sensor import PhysicalSensor, physical_measure
+from .physical_sensor import PhysicalSensor, field_max_slope, physical_measure
 
 __all__ = ["SENSORS", "physical_config", "SimulatedSession", "simulate_session", "record_session", "RecordedSession",
            "nees", "check_sessions", "session_outcome", "summarise_sessions", "NEES_3SIGMA_6DOF"]
@@ -110,6 +110,9 @@ def record_session(nominal: ForwardModel, measured: ForwardModel, scene: Scene, 
         res = measured.evaluate(x_true, check_range=False)
         lit = np.asarray(res.valid, bool)
         clean = np.array(res.slopes)
+        # a sample grid fine enough for every pose's field (its rays on the lit lenslets)
+        sensor = sensor.sampled_for(measured.bench, max((field_max_slope(measured, x, sensor)
+                                                         for x in x_true[lit]), default=0.0))
         for i in np.flatnonzero(lit):
             clean[i] = physical_measure(measured, x_true[i], sensor).slopes
             if tick is not None:
