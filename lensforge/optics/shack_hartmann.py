@@ -336,10 +336,10 @@ class ForwardModel:
         u and with det J, whose derivative needs second derivatives of the ray map: those
         come from differences in u and v (step ``_UV_STEP``) of the exact first derivatives,
         with d/dq (dX/du) = d/du (dX/dq) (symmetry of second derivatives), so two traced
-        copies of each aimed ray give every direction. The centroid's
-        derivative is exact by a complex step through ``centroid_slopes``; the Zernike fit
-        is linear. uv0: the rays aimed at x by a previous evaluation (used as they are when
-        every one still lands within ``AIM_TOL``, else the start of a new aim). exact=False
+        copies of each aimed ray give every direction (``aimed_tangents``). The centroid's
+        derivative is exact (``_centroid_derivatives``); the Zernike fit is linear. uv0: the
+        rays aimed at x by a previous evaluation (used as they are when every one still lands
+        within ``AIM_TOL``, else the start of a new aim). exact=False
         leaves out the change of det J (the irradiance weights then move with the beam profile
         only) and traces the aimed rays alone, ~2.5x cheaper: an iteration Jacobian (a few
         1e-3 off, ``aimed_tangents``), never a covariance's.
@@ -383,7 +383,7 @@ class ForwardModel:
         dsq, dirr = aimed_tangents(t, P, uv, irr, self.bench.laser.beam_diameter_mm, _UV_STEP)
         nq = dirr.shape[-1]  # directions q: pose, then lens
         _, n_l, q = a["st"].shape
-        good = (a["st"] == OK) & np.all((t.status == OK).reshape(len(shifts), P, N), axis=0).reshape(P, n_l, q)
+        good = a["st"] == OK  # rays whose trace failed have zero tangents already (``aimed_tangents``)
         wi = self._weights(a)
         dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, nq), 0.0) * self.quad_weights[:, None]
         dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, nq), 0.0)

@@ -340,9 +340,8 @@ def _trace_lens(ox, oy, oz, dx, dy, dz, c, k, alpha, n_alpha, poly, ripple, zv, 
 
     tan (m, 6): tangents (d origin, d direction) of the entering ray along m directions,
     replaced in place by those of the exit ray (meaningful when the status is OK).
-    lt = (Lc, Lk, La, Lp, Lr, Lzv, Ln): l lens tangents in kernel layout
-    (``LensTangents.arrays``), tangent j the change of the lens's kernel arrays
-    (curvature, conic, aspheric, polynomial, ripple, vertex z, index);
+    lt: l lens tangents in kernel layout (``LensTangents.arrays``: per surface and tangent
+    the change of each sag term's coefficient, of the ripple, the vertex z and the index);
     lt = None (no lens tangents) compiles without that code. A lens tangent reaches the
     ray only through what it changes where the ray meets each surface s: the surface's
     height, its gradient and the index ratio (4 numbers, ``_sag_tangents``), and the ray's

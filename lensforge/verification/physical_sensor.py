@@ -8,9 +8,9 @@ trace and lensforge's Zernike fit matrix.
    at the pose to the lenslet plane z = 0 of {S}. The eikonal S(X, Y) (optical path,
    mm) is the least-squares potential of the rays' direction cosines (dS/dX = L,
    dS/dY = M: Malus-Dupin), a Legendre polynomial of total degree ``potential_degree``
-   over the lit lenslets (and a one-pitch collar); the irradiance I = I_beam / |det d(X, Y)/d(u, v)| (exact
-   derivatives of the trace) is fitted alike in log I. The fit residual is reported
-   (``PhysicalMeasurement.potential_residual_urad``). E = sqrt(I) exp(i k S).
+   over the lit lenslets (and a one-pitch collar); the irradiance
+   I = I_beam / |det d(X, Y)/d(u, v)| (exact derivatives of the trace) is fitted alike in
+   log I. The fit residual is reported (``PhysicalMeasurement.potential_residual_urad``). E = sqrt(I) exp(i k S).
 2. The whole lit lenslet array at once, coherently: every lenslet of the sensor within
    ``margin_lenslets`` rings of a pupil lenslet (each pupil lenslet's (2 margin + 1)^2 block) multiplies
    E by its thin-lens phase exp(-i k r^2 / 2 f) (ASSUMPTION: ideal paraxial lenslets)
@@ -68,8 +68,8 @@ class PhysicalSensor:
     from 4 to 5 and by up to 3 sigma from 2 to 4 on the paper's polynomial lens: the lenslet
     edges' diffraction needs fine samples; a field whose phase it would alias is refused,
     ``samples_needed``; the session simulator raises it to its slopes' need, ``sampled_for``);
-    margin_lenslets: lit lenslet rings beyond each pupil lenslet; oversample: sub-sample shifts per axis of the camera field for the
-    pixel integral (``_camera_intensity``); pad_mm: zero padding of the propagation grid; potential_degree,
+    margin_lenslets: lit lenslet rings beyond each pupil lenslet; oversample: sub-sample
+    shifts per axis of the camera field for the pixel integral (``_camera_intensity``); pad_mm: zero padding of the propagation grid; potential_degree,
     ray_grid: the ray-field fit; reference: 'factory' or 'beam' (see the module);
 
     tracking_iterations: window re-centrings; lit_stride: 1 lights the whole array at once;
@@ -333,12 +333,15 @@ def _field_rays(model: ForwardModel, pose, cfg: PhysicalSensor) -> dict:
             "lit": fit & (dist <= (cfg.margin_lenslets + 0.5) * p), "centre": centre, "h": h, "cx": cx, "cy": cy}
 
 
+def _lit_max_slope(r: dict) -> float:
+    d = r["d"][r["lit"]]
+    return float(np.max(np.abs(d[:, :2] / d[:, 2:3]), initial=0.0))
+
+
 def field_max_slope(model: ForwardModel, pose, cfg: PhysicalSensor) -> float:
     """Largest ray slope (tan, either axis) on the lit lenslets at ``pose``: what the field's sampling
     must resolve (``samples_needed``). Traces the ray grid only."""
-    r = _field_rays(model, pose, cfg)
-    d = r["d"][r["lit"]]
-    return float(np.max(np.abs(d[:, :2] / d[:, 2:3]), initial=0.0))
+    return _lit_max_slope(_field_rays(model, pose, cfg))
 
 
 def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
@@ -349,8 +352,7 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     X, d, det, I_beam, ok = r["X"], r["d"], r["det"], r["I_beam"], r["fit"]
     centre, h, cx, cy = r["centre"], r["h"], r["cx"], r["cy"]
     # the sampled field must resolve its phase (``samples_needed``)
-    lit_d = d[r["lit"]]
-    s_max = float(np.max(np.abs(lit_d[:, :2] / lit_d[:, 2:3]), initial=0.0))
+    s_max = _lit_max_slope(r)
     need = samples_needed(bench, cfg, s_max)
     if cfg.samples_per_pixel < need:
         raise ConfigError(f"physical sensor: samples_per_pixel {cfg.samples_per_pixel} under-samples the field's "
@@ -369,7 +371,8 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     logI = Vy @ CI @ Vx.T
     k = 2 * np.pi / lam
     E = np.zeros((len(x), len(x)), complex)
-    E[np.ix_(myk, mxk)] = np.exp(0.5 * (logI - logI.max()) + 1j * k * S) * _lit_cells(x[mxk], x[myk], cx, cy, model, cfg)
+    lit = _lit_cells(x[mxk], x[myk], cx, cy, model, cfg)
+    E[np.ix_(myk, mxk)] = np.exp(0.5 * (logI - logI.max()) + 1j * k * S) * lit
     # expected spot start: the local ray slope (tan) at each pupil lenslet centre
     c = model.pupil.centres
     _, D = _legendre_basis(deg)
