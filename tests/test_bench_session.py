@@ -61,6 +61,11 @@ def test_plan_json_is_a_study_pose_plan(kr10_plan, tmp_path):
     f.write_text(json.dumps(d))
     with pytest.raises(Exception, match="lens_pose"):
         load_plan(f)
+    d = json.loads(kr10_plan.files(("csv",))["plan.json"])
+    d["poses"][2]["lens_pose"]["ry_rad"] = float("nan")
+    f.write_text(json.dumps(d))
+    with pytest.raises(Exception, match=r"poses\[2\]\.ry_rad is nan"):
+        load_plan(f)
 
 
 def test_plan_box_follows_the_design(kr10_plan):

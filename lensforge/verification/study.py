@@ -375,8 +375,11 @@ def check_plan(plan, source: str = "pose plan") -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 6 or a.shape[0] < 3:
         raise ConfigError(f"{source}: need at least 3 rows of 6 numbers (tx ty tz mm, rx ry rz rad), "
                           f"got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ConfigError(f"{source}: poses must be finite numbers")
+    bad = np.argwhere(~np.isfinite(a))
+    if bad.size:
+        i, j = bad[0]
+        names = ("tx_mm", "ty_mm", "tz_mm", "rx_rad", "ry_rad", "rz_rad")
+        raise ConfigError(f"{source}: poses[{i}].{names[j]} is {a[i, j]}: every pose entry must be a finite number")
     return a
 
 
