@@ -15,7 +15,7 @@ from conftest import run_cli_inprocess
 from lensforge.calibration.pipeline import METHODS as CALIBRATION_METHODS
 from lensforge.calibration.session import calibrate
 from lensforge.calibration.formats import write_bundle
-from lensforge.optics.pose import invert_poses, matrix_to_pose
+from lensforge.optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
 from lensforge.verification.session_sim import NEES_3SIGMA_6DOF, check_sessions, simulate_session
 
 LENS = "extended_polynomial"  # a paper freeform lens: rank 6, fast to trace
@@ -102,7 +102,6 @@ def test_a_start_that_lights_fewer_poses_loses(session):
     from lensforge.calibration.session import match_session
     from lensforge.asbuilt.tolerances import resolve_tolerances
     from lensforge.calibration.session_joint import best_joint_fit
-    from lensforge.optics.pose import pose_to_matrix
 
     s, paths = session
     data = match_session(LENS, paths["wfs_zernike.csv"], paths["robot_poses.csv"])
@@ -114,6 +113,27 @@ def test_a_start_that_lights_fewer_poses_loses(session):
     assert i == 1 and res.used.all()
     e = matrix_to_pose(invert_poses(s.Z) @ res.Z)
     assert float(e @ np.linalg.solve(res.cov_Z, e)) <= NEES_3SIGMA_6DOF
+
+
+def test_a_fit_accepted_on_every_pose_ends_the_search(session, monkeypatch):
+    """The later starts are not run once a fit passes the chi2 test on every pose: the
+    cell's nominal start after the true X, Z would only repeat the minimum (at 2-4x the cost)."""
+    from lensforge.calibration.session import match_session
+    from lensforge.asbuilt.tolerances import resolve_tolerances
+    import lensforge.calibration.session_joint as sj
+
+    s, paths = session
+    data = match_session(LENS, paths["wfs_zernike.csv"], paths["robot_poses.csv"])
+    sc = data.scene
+    calls = []
+    real = sj.joint_calibrate
+    monkeypatch.setattr(sj, "joint_calibrate", lambda *a, **k: calls.append(1) or real(*a, **k))
+    tol, _ = resolve_tolerances("default")
+    far = (sc.X, sc.Z @ pose_to_matrix(np.array([0.0, 0.0, -90.0, 0.0, 0.0, 0.0])))
+    res, _, i = sj.best_joint_fit(data.model.bench, data.model.lens, tol, data.z, data.A, sc.T_SO_nominal,
+                                  [(s.X, s.Z), far], data.robot.noise.cov)
+    assert i == 0 and res.used.all() and not res.mismatch
+    assert len(calls) == 1
 
 
 def test_no_tolerance_model_falls_back_to_two_stage(session, monkeypatch, capsys, tmp_path):
