@@ -34,7 +34,8 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .centroid import centroid_slope_derivatives, centroid_slopes, crosstalk_slopes, quadrature_rule, window_gain
+from .centroid import (LOCAL_INPUTS, centroid_slope_derivatives, centroid_slopes, crosstalk_slope_derivatives, crosstalk_slopes,
+                       quadrature_rule, window_gain)
 from .sensor_range import SensorRange, range_use, summarize_range
 from .trace import (AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, aimed_tangents,
                     lens_kernel, trace_rays)
@@ -301,9 +302,15 @@ class ForwardModel:
         """(P, d, n, 2): the centroids' derivatives along d directions of the quadrature slopes
         dsq (P, n, q, 2, d) and weights dwi (P, n, q, d): in closed form for the lenslet's own
         centroid; with the neighbours' cross-talk by a complex step through ``_centroids``
-        (analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly)."""
+        (analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly), or, for more than
+        ``LOCAL_INPUTS`` directions, along the kernel's 8 inputs per lenslet, chained
+        (``crosstalk_slope_derivatives``)."""
         if self._own_centroid:
             ds = centroid_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain)
+            return np.moveaxis(ds, -1, 1)
+        if dsq.shape[-1] > LOCAL_INPUTS:  # more directions than the kernel has inputs: chain through them
+            ds = crosstalk_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain,
+                                             self.pupil.centres, self.bench.sensor, self.bench.laser.wavelength_nm)
             return np.moveaxis(ds, -1, 1)
         eps = 1e-30
         sq_c = sq[:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, d, n, q, 2)
