@@ -6,6 +6,8 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      ... --design DESIGN.json --sessions 6 --spp 4 [--calibration-tolerances default]: the session study
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
      ... --cost: S(p) with and without the cross-talk model, one physical pose
+     ... --spheres: analytic spherical waves (R = +-20 ... 100 mm, uniform and Gaussian beam) through the
+         physical reference against the fast models, no lens (what the cross-talk kernel misses, isolated)
 
 Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
 extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
@@ -132,6 +134,40 @@ def cost(lens_name: str = "zernike", repeat: int = 3) -> dict:
     return out
 
 
+def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4) -> dict:
+    """Physical reference minus fast model (sigma per mode) for spherical waves converging to R mm after
+    the lenslets (R < 0 diverging), uniform or with the bench's Gaussian beam, over the default pupil."""
+    from lensforge.optics.centroid import centroid_slopes, crosstalk_slopes
+    from lensforge.verification.physical_sensor import field_slopes, plane_field
+
+    bench = lf.Bench.default()
+    out = {}
+    for gauss in (False, True):
+        for R in radii:
+            row = {}
+            for xt in ("none", "neighbours"):
+                m = ForwardModel(bench.replace(sensor={"crosstalk": xt}), lf.paper_lens("polynomial"))
+                c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
+                X = c[:, None, :] + p * off[None]
+                sq = -X / R  # the sphere's slopes (tan) at the quadrature points
+                wb = 0.5 * bench.laser.beam_diameter_mm
+                wi = w * (np.exp(-2 * (X**2).sum(-1) / wb**2) if gauss else np.ones(X.shape[:2]))
+                s = centroid_slopes(sq, wi, off, w, m.window_gain)
+                if xt == "neighbours":
+                    s = crosstalk_slopes(s[None], sq[None], wi[None], off, w, c, bench.sensor, bench.laser.wavelength_nm)[0]
+                row[xt] = m.pupil.fit(s)
+            cfg = PhysicalSensor(samples_per_pixel=spp)
+            zp = m.pupil.fit(field_slopes(plane_field(bench, cfg, c, curvature_mm=R, gaussian=gauss), bench, cfg, c)[0])
+            sig = np.sqrt(np.diag(m.noise_cov))
+            j4 = list(m.modes).index(4)
+            res = {k: ((zp - z) / sig) for k, z in row.items()}
+            key = f"{'gaussian' if gauss else 'uniform'}/R{R:+.0f}"
+            out[key] = {k: {"z4_sigma": float(v[j4]), "max_sigma": float(np.abs(v).max())} for k, v in res.items()}
+            print(f"{key:16s} " + " | ".join(f"{k}: Z4 {v[j4]:7.2f} max {np.abs(v).max():6.2f} sigma" for k, v in res.items()),
+                  flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--design", default=None)
@@ -145,7 +181,14 @@ def main(argv=None):
     ap.add_argument("--sensors", default="model,physical", help="session study: which sensors measure")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
+    ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     a = ap.parse_args(argv)
+    if a.spheres:
+        out = spheres(spp=a.spp)
+        if a.json:
+            with open(a.json, "w") as fh:
+                json.dump(out, fh)
+        return
     if a.cost:
         cost()
         return
