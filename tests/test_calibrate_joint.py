@@ -183,3 +183,14 @@ def test_joint_sessions_default_tolerances_inside_3sigma():
     assert abs(np.median(r["chi2_dof"]) - 1.0) < 0.2
     assert r["inside_3sigma"] >= 0.95
     assert np.median(r["nees"]) / 6 < 1.6
+
+
+def test_a_fit_that_darkens_most_measured_poses_is_refused():
+    # 6 of 18 measured poses explained (1 of 200 printed lenses of the co-designed study: chi2/dof 0.92,
+    # Z 0.2-0.6 m off): a wrong minimum, refused with what to check; half or more is a result
+    from lensforge.calibration.session_joint import check_explained
+    from lensforge.errors import CalibrationError
+    with pytest.raises(CalibrationError, match="explains only 6 of 18 measured poses"):
+        check_explained(6, 18)
+    check_explained(9, 18)
+    check_explained(12, 12)
