@@ -297,6 +297,11 @@ def _describe_dir(v: np.ndarray, frame: str) -> str:
 def _name_null_vector(v: np.ndarray, length_mm: float) -> str:
     """Human-readable name of a null direction v = (xi_X, xi_Z) (physical units); a
     rotation part smaller than 10 % of the translation part over length_mm is ignored."""
+    # -v is null too: the sign that makes Z's largest part positive (rotation if any, else translation),
+    # so that the name does not depend on the SVD's arbitrary sign (it flipped between CPUs)
+    lead = v[9:12] if np.linalg.norm(v[9:12]) * length_mm >= 0.1 * np.linalg.norm(v[6:9]) else v[6:9]
+    if lead[int(np.argmax(np.abs(lead)))] < 0:
+        v = -v
     xr, xw, zr, zw = v[0:3], v[3:6], v[6:9], v[9:12]
     nz_w = np.linalg.norm(zw)
     nx_w = np.linalg.norm(xw)
