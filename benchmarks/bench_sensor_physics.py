@@ -141,13 +141,13 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4) -> dic
     from lensforge.verification.physical_sensor import field_slopes, plane_field
 
     bench = lf.Bench.default()
+    m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
+    c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
     out = {}
     for gauss in (False, True):
         for R in radii:
             row = {}
             for xt in ("none", "neighbours"):
-                m = ForwardModel(bench.replace(sensor={"crosstalk": xt}), lf.paper_lens("polynomial"))
-                c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
                 X = c[:, None, :] + p * off[None]
                 sq = -X / R  # the sphere's slopes (tan) at the quadrature points
                 wb = 0.5 * bench.laser.beam_diameter_mm

@@ -180,13 +180,24 @@ def _aperture_terms(alpha_max: float, tol: float = 1e-12) -> int:
 _ALPHA_FRESNEL = 2.0  # |alpha| from which ``_curved_aperture`` takes the Fresnel integrals
 
 
+def _fresnel(z):
+    """(S, C) Fresnel integrals; for a complex step z = x + i h (h ~ 1e-30) from the real ones and their
+    derivatives sin, cos(pi x^2 / 2): exact to first order in h, and ~4x cheaper than scipy's complex path."""
+    if not np.iscomplexobj(z):
+        return special.fresnel(z)
+    x, h = z.real, z.imag
+    S, C = special.fresnel(x)
+    u = 0.5 * np.pi * x * x
+    return S + 1j * h * np.sin(u), C + 1j * h * np.cos(u)
+
+
 def _fresnel_aperture(beta, alpha):
     """(Re, Im) of A(beta, alpha) for alpha > 0 by completing the square: A = exp(-i beta^2 / 4 alpha)
     sqrt(pi / 2 alpha) (dC + i dS), C and S the Fresnel integrals between the aperture's edges."""
     sc = np.sqrt(2.0 * alpha / np.pi)
     t0 = beta / (2.0 * alpha)
-    s_b, c_b = special.fresnel((0.5 - t0) * sc)
-    s_a, c_a = special.fresnel((-0.5 - t0) * sc)
+    s_b, c_b = _fresnel((0.5 - t0) * sc)
+    s_a, c_a = _fresnel((-0.5 - t0) * sc)
     dc, ds = c_b - c_a, s_b - s_a
     phi = beta * beta / (4.0 * alpha)
     amp = np.sqrt(np.pi / (2.0 * alpha))
@@ -234,7 +245,7 @@ def _curved_aperture(beta, alpha, split: float = 10.0):
             t = -t * b2 / ((2 * j + 1) * (2 * j + 2))
         for n in range(n_terms + 1):
             e_n = sum(pj / (2 * n + 2 * j + 1) for j, pj in enumerate(powers)) * 0.25**n
-            even[n] = np.array(np.broadcast_to(even[n], beta.shape), dtype=np.result_type(even[n], e_n))
+            even[n] = np.array(even[n], dtype=np.result_type(even[n], e_n))  # beta's shape already
             even[n][idx] = e_n
     re, im = even[0], 0.0 * even[0]
     coef = np.ones_like(alpha)
@@ -399,20 +410,17 @@ def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray,
     s = centroid_slopes(sq, wi, offsets, weights, gains)
     ds = centroid_slope_derivatives(sq, wi, dsq, dwi, offsets, weights, gains)  # (..., n, 2, d)
     K, g = local_field(sq, wi, offsets, weights, p)
-    m2 = weights @ offsets**2
-    dK = np.einsum("q,qj,...qid->...ijd", weights, offsets, dsq) / (m2 * p)[None, :, None]
-    tot = wi.sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cen = np.einsum("...q,qk->...k", wi, offsets) / tot[..., None]
-        dcen = (np.einsum("...qd,qk->...kd", dwi, offsets) - cen[..., None] * dwi.sum(axis=-2)[..., None, :]) \
-            / tot[..., None, None]
-    d_local = np.concatenate([f * ds, dK.reshape(dK.shape[:-3] + (4,) + dK.shape[-1:]), 12.0 * dcen / p], axis=-2)
+    # K and g along the d directions: local_field is analytic in (sq, wi), a complex step per direction
+    h = 1e-30
+    Kc, gc = local_field(sq + 1j * h * np.moveaxis(dsq, -1, 0), wi + 1j * h * np.moveaxis(dwi, -1, 0),
+                         offsets, weights, p)  # (d, ..., n, 2, 2), (d, ..., n, 2)
+    dK, dg = np.moveaxis(Kc.imag / h, 0, -1), np.moveaxis(gc.imag / h, 0, -1)
+    d_local = np.concatenate([f * ds, dK.reshape(dK.shape[:-3] + (4,) + dK.shape[-1:]), dg], axis=-2)
     spot = centres + f * s
-    eps = 1e-30
     jac = np.empty(s.shape + (LOCAL_INPUTS,))  # (..., n, 2, 8): d shift / d local input
     for j in range(LOCAL_INPUTS):
         e = np.zeros(LOCAL_INPUTS)
-        e[j] = eps
+        e[j] = h
         jac[..., j] = crosstalk_shift(spot + 1j * e[:2], centres, K + 1j * e[2:6].reshape(2, 2), g + 1j * e[6:],
-                                      sensor, wavelength_nm).imag / eps
+                                      sensor, wavelength_nm).imag / h
     return ds * (1.0 + p * p / (6.0 * f * f)) + np.einsum("...kl,...ld->...kd", jac, d_local) / f
