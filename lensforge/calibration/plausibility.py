@@ -164,8 +164,9 @@ def check_robot_reach(T: np.ndarray, robot, source: str, rows=(), units: str | N
     row = rows[i] if len(rows) > i else i + 1
     hint = "check the file's units and the --robot model"
     if np.all(d / 1000.0 <= lim):
-        hint = ("read in mm it is in reach: " + ("its `# units: m` line is probably wrong" if units == "m" else
-                                                  "the file is probably in mm where metres are declared"))
+        hint = ("a thousandth of it is in reach: " + ("the values are probably mm: its `# units: m` line is probably wrong"
+                                                       if units == "m" else "the values are probably um, not mm; "
+                                                       "check the exporter's length unit"))
     raise ConfigError(f"{source}: row {row}: the flange is {d[i]:.6g} mm from the robot base, beyond the "
                       f"{robot.name}'s reach ({robot.reach_mm:g} mm); {hint}")
 
