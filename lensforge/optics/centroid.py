@@ -292,7 +292,7 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     poses) the curvature took the Zernike lens's Z4 from 18-24 to 0.5-4.4 sigma and the worst mode
     over the three lenses from 24 to 6.7 sigma (an earlier second-order expansion had moved modes
     the wrong way); K_xy across the sub-aperture (a rank expansion of exp(i k K_xy u v)) moved them
-    by <= 2.6 sigma, mixed, at 7x the cost, and is left out. The window (``centroid_window_px``) is
+    by <= 2.8 sigma, mixed, at R + 1 times the cost (R = 6), and is left out. The window (``centroid_window_px``) is
     placed on whole pixels on the spot
     (pixel edges at ``camera_offset_px`` + k pixels), re-centred on its centroid ``iterations``
     times; ``centroid_threshold`` x the window's peak is cut. Written in real arithmetic (cos,
