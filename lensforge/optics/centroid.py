@@ -41,8 +41,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy import special
-
+from .aperture import square_aperture_moments
 from .bench import CROSSTALK_MODELS, Sensor
 
 __all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "centroid_slope_derivatives", "CROSSTALK_MODELS",
@@ -166,115 +165,27 @@ def centroid_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray, 
 _XT_RING = 3
 
 
-def _aperture_terms(alpha_max: float, tol: float = 1e-12) -> int:
-    """Terms of the curvature series exp(i alpha t^2) = sum_n (i alpha t^2)^n / n! over |t| <= 1/2 that
-    reach ``tol``: (alpha_max / 4)^N / N! < tol (0 for a flat sub-aperture: the sinc)."""
-    a = 0.25 * abs(float(alpha_max))
-    n, term = 0, 1.0
-    while term >= tol and n < 60:
-        n += 1
-        term *= a / n
-    return n if a > 0 else 0
-
-
-_ALPHA_FRESNEL = 2.0  # |alpha| from which ``_curved_aperture`` takes the Fresnel integrals
-
-
-def _fresnel(z):
-    """(S, C) Fresnel integrals; for a complex step z = x + i h (h ~ 1e-30) from the real ones and their
-    derivatives sin, cos(pi x^2 / 2): exact to first order in h, and ~4x cheaper than scipy's complex path."""
-    if not np.iscomplexobj(z):
-        return special.fresnel(z)
-    x, h = z.real, z.imag
-    S, C = special.fresnel(x)
-    u = 0.5 * np.pi * x * x
-    return S + 1j * h * np.sin(u), C + 1j * h * np.cos(u)
-
-
-def _fresnel_aperture(beta, alpha):
-    """(Re, Im) of A(beta, alpha) for alpha > 0 by completing the square: A = exp(-i beta^2 / 4 alpha)
-    sqrt(pi / 2 alpha) (dC + i dS), C and S the Fresnel integrals between the aperture's edges."""
-    sc = np.sqrt(2.0 * alpha / np.pi)
-    t0 = beta / (2.0 * alpha)
-    s_b, c_b = _fresnel((0.5 - t0) * sc)
-    s_a, c_a = _fresnel((-0.5 - t0) * sc)
-    dc, ds = c_b - c_a, s_b - s_a
-    phi = beta * beta / (4.0 * alpha)
-    amp = np.sqrt(np.pi / (2.0 * alpha))
-    cp, sp = np.cos(phi), np.sin(phi)
-    return amp * (cp * dc + sp * ds), amp * (cp * ds - sp * dc)
-
-
-def _curved_aperture(beta, alpha, split: float = 10.0):
-    """(Re, Im) of A(beta, alpha) = int_{-1/2}^{1/2} exp(i alpha t^2) exp(-i beta t) dt: one axis of a square
-    sub-aperture with the quadratic phase alpha t^2 (its curvature) seen at the camera angle beta
-    (alpha = 0: the sinc, sin(beta / 2) / (beta / 2)); beta (...) and alpha broadcastable to it.
-
-    |alpha| < ``_ALPHA_FRESNEL``: A = sum_n (i alpha)^n / n! E_n(beta) with the even moments
-    E_n = int t^{2n} cos(beta t) dt, for |beta| >= split by the integration-by-parts recursion
-    F_m = B_m - i (m / beta) F_{m-1} (its rounding grows by m / beta per step: <= 3e2 for the <= 22
-    moments used), below by their power series (terms <= e^(split / 2)); larger |alpha|: the Fresnel
-    integrals (``_fresnel_aperture``; A(beta, -alpha) = conj A(-beta, alpha)). Written in real
-    arithmetic, so that a complex step through beta and alpha gives the exact derivative."""
-    beta = np.asarray(beta)
-    alpha = np.broadcast_to(np.asarray(alpha), beta.shape)
-    big = np.abs(np.real(alpha)) >= _ALPHA_FRESNEL
-    a_small = np.real(alpha[~big])
-    n_terms = _aperture_terms(np.max(np.abs(a_small), initial=0.0))
-    if np.iscomplexobj(alpha):  # a complex step at alpha = 0: the first term carries its derivative
-        n_terms = max(n_terms, 1)
-    small = np.abs(np.real(beta)) < split
-    bl = np.where(small, split, beta)
-    s, c = np.sin(0.5 * bl), np.cos(0.5 * bl)
-    g = 2.0 * s / bl  # F_0, even moments G_m real, odd moments i H_m
-    even = [g]
-    half = 1.0
-    for m in range(1, 2 * n_terms + 1):
-        half *= 0.5
-        if m % 2:
-            h = half * 2.0 * c / bl - (m / bl) * g
-        else:
-            g = half * 2.0 * s / bl + (m / bl) * h
-            even.append(g)
-    idx = np.nonzero(small)
-    if idx[0].size:  # the series, on the small |beta| only: E_n = 4^-n sum_j (-1)^j b^2j / ((2j)! (2n + 2j + 1))
-        b2 = (0.5 * beta[idx]) ** 2
-        powers, t = [], np.ones_like(b2)
-        for j in range(26):
-            powers.append(t)
-            t = -t * b2 / ((2 * j + 1) * (2 * j + 2))
-        for n in range(n_terms + 1):
-            e_n = sum(pj / (2 * n + 2 * j + 1) for j, pj in enumerate(powers)) * 0.25**n
-            even[n] = np.array(even[n], dtype=np.result_type(even[n], e_n))  # beta's shape already
-            even[n][idx] = e_n
-    re, im = even[0], 0.0 * even[0]
-    coef = np.ones_like(alpha)
-    for n in range(1, n_terms + 1):
-        coef = coef * alpha / n
-        q = n % 4
-        if q == 0:
-            re = re + coef * even[n]
-        elif q == 1:
-            im = im + coef * even[n]
-        elif q == 2:
-            re = re - coef * even[n]
-        else:
-            im = im - coef * even[n]
-    jdx = np.nonzero(big)
-    if jdx[0].size:
-        a, b = alpha[jdx], beta[jdx]
-        neg = np.real(a) < 0
-        fr, fi = _fresnel_aperture(np.where(neg, -b, b), np.where(neg, -a, a))
-        dt = np.result_type(re, im, fr, fi)
-        re, im = np.array(np.broadcast_to(re, beta.shape), dtype=dt), np.array(np.broadcast_to(im, beta.shape), dtype=dt)
-        re[jdx], im[jdx] = fr, np.where(neg, -fi, fi)
-    return re, im
-
-
 def _neighbour_offsets(ring: int) -> np.ndarray:
     r = np.arange(-ring, ring + 1, dtype=float)
     X, Y = np.meshgrid(r, r, indexing="xy")
     return np.stack([X.ravel(), Y.ravel()], axis=1)  # (B, 2), the own lenslet included
+
+
+_XT_CHUNK = 32  # lenslets per kernel pass: bounds its memory (a whole co-designed pose: 0.41 GB peak; >23 GB unchunked)
+# K_xy's series exp(i a t_x t_y) = sum_r (i a t_x t_y)^r / r!: its terms kept down to this bound. On the co-designed
+# design's lenslets (a up to 4.2: R = 8) the shifts are within 3e-4 nm of those at 1e-9 (R = 12), at 0.63x the cost
+_XY_TOL = 1e-5
+
+
+def _xy_ranks(a_abs: np.ndarray) -> np.ndarray:
+    """Terms r = 0 .. R of K_xy's series per lenslet: (|a| / 4)^(R+1) / (R+1)! < ``_XY_TOL`` (|t_x t_y| <= 1/4)."""
+    q = 0.25 * np.asarray(a_abs, dtype=float)
+    R = np.zeros(q.shape, dtype=int)
+    term = np.ones(q.shape)
+    for r in range(1, 40):
+        term = term * q / r
+        R = np.where(term >= _XY_TOL, r, R)
+    return R
 
 
 def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_log_i: np.ndarray, sensor: Sensor,
@@ -286,67 +197,130 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     d s_i / d x_j (1/mm); grad_log_i: (..., n, 2) gradient of ln irradiance (1/mm); centres: (n, 2).
     Each sub-aperture of the (2 _XT_RING + 1)^2 block carries the lenslet's local quadratic wavefront:
     the lenslet's tilt plus K times its offset, amplitude exp(grad_log_i . offset / 2), the trapezoid
-    piston between them, and its own curvature K_xx, K_yy across it (``_curved_aperture``: the square
-    aperture's defocused Fresnel field along each axis, the sinc when flat), with the quadratic phase
-    about its own lenslet. Against the physical reference (paper lenses at nominal and two plan
-    poses) the curvature took the Zernike lens's Z4 from 18-24 to 0.5-4.4 sigma and the worst mode
-    over the three lenses from 24 to 6.7 sigma (an earlier second-order expansion had moved modes
-    the wrong way); K_xy across the sub-aperture (a rank expansion of exp(i k K_xy u v)) moved them
-    by <= 2.8 sigma, mixed, at R + 1 times the cost (R = 6), and is left out. The window (``centroid_window_px``) is
-    placed on whole pixels on the spot
-    (pixel edges at ``camera_offset_px`` + k pixels), re-centred on its centroid ``iterations``
-    times; ``centroid_threshold`` x the window's peak is cut. Written in real arithmetic (cos,
-    sin, the aperture series) so that a complex step through it gives its exact derivative.
+    piston between them, and its own curvature across it, K_xx, K_yy and K_xy (``aperture``: the square
+    aperture's defocused Fresnel field along each axis, the sinc when flat; the cross term exp(i a t_x t_y),
+    a = k p^2 (K_xy + K_yx) / 2, as its series in the aperture moments, r <= R with the terms' bound
+    (|a| / 4)^r / r! down to ``_XY_TOL``). Against the physical reference (paper lenses at nominal and
+    two plan poses) the K_xx, K_yy curvature took the Zernike lens's Z4 from 18-24 to 0.5-4.4 sigma and
+    the worst mode over the three lenses from 24 to 6.7 sigma (an earlier second-order expansion had
+    moved modes the wrong way). The window (``centroid_window_px``) is placed on whole pixels on the spot
+    (pixel edges at ``camera_offset_px`` + k pixels), re-centred on its centroid ``iterations`` times
+    (recomputed only for the lenslets whose window moved); ``centroid_threshold`` x the window's peak is
+    cut. Runs ``_XT_CHUNK`` lenslets at a time. Written in real arithmetic (cos, sin, the aperture
+    moments' jets) so that a complex step through it gives its exact derivative.
     """
+    lead = np.broadcast_shapes(spot.shape[:-1], K.shape[:-2], grad_log_i.shape[:-1])
+    dt = np.result_type(spot, K, grad_log_i)
+    sp = np.broadcast_to(spot, lead + (2,)).reshape(-1, 2)
+    Kf = np.broadcast_to(K, lead + (2, 2)).reshape(-1, 2, 2)
+    gf = np.broadcast_to(grad_log_i, lead + (2,)).reshape(-1, 2)
+    out = np.empty(sp.shape, dtype=dt)
+    for i in range(0, len(sp), _XT_CHUNK):
+        c = slice(i, i + _XT_CHUNK)
+        out[c] = tracked_window_shift(sp[c], _local_block(Kf[c], gf[c], sensor, wavelength_nm), sensor, wavelength_nm,
+                                      iterations, sub)
+    return out.reshape(lead + (2,))
+
+
+def tracked_window_shift(spot: np.ndarray, block: dict, sensor: Sensor, wavelength_nm: float, iterations: int = 1,
+                         sub: int = 2) -> np.ndarray:
+    """Centroid minus spot (m, 2) mm of m lenslets whose blocks are ``block`` (``_local_block``'s fields, any
+    source): the whole-pixel window on the spot, re-centred on its centroid ``iterations`` times (recomputed
+    only for the lenslets whose window moved)."""
+    pix, W = sensor.pixel_mm, int(sensor.centroid_window_px)
+    edge0 = float(sensor.camera_offset_px) * pix
+    st = _window_start(spot, edge0, pix, W)
+    pos = _window_centroid(spot, block, st, sensor, wavelength_nm, sub)
+    for _ in range(iterations):
+        st_new = _window_start(pos, edge0, pix, W)
+        moved = np.nonzero(np.any(st_new != st, axis=-1))[0]
+        if not moved.size:
+            break
+        pos[moved] = _window_centroid(spot[moved], {key: v[moved] for key, v in block.items()}, st_new[moved], sensor,
+                                      wavelength_nm, sub)
+        st = st_new
+    return pos - spot
+
+
+def _window_start(pos: np.ndarray, edge0: float, pix: float, W: int) -> np.ndarray:
+    """First pixel (m, 2) of the whole-pixel window centred on pos (its real part)."""
+    return np.floor((np.real(pos) - edge0) / pix - 0.5 * W + 0.5)
+
+
+def _local_block(K: np.ndarray, grad_log_i: np.ndarray, sensor: Sensor, wavelength_nm: float) -> dict:
+    """The (2 _XT_RING + 1)^2 block of m lenslets under their local quadratic wavefront (the block shares the
+    lenslet's K): per lenslet and neighbour b, its spot relative to the own spot nb_pos (m, B, 2), its complex
+    amplitude (cr, ci) (m, B) (relative amplitude, piston and the lenslets' focusing phase), and its sub-aperture's
+    curvature: alpha (m, B, 2) = k p^2 (K_xx, K_yy) / 2 and a_xy (m, B) = k p^2 (K_xy + K_yx) / 2."""
+    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    k = 2 * np.pi / (wavelength_nm * 1e-6)
+    pe = p * _neighbour_offsets(_XT_RING)  # (B, 2)
+    delta = np.einsum("...ij,bj->...bi", K, pe)  # (m, B, 2): differential tilt of each neighbour
+    amp = np.exp(0.5 * np.einsum("...i,bi->...b", grad_log_i, pe))
+    phase = k * (0.5 * np.einsum("bi,...bi->...b", pe, delta) + (pe**2).sum(axis=1) / (2 * f))
+    B = len(pe)
+    alpha = np.broadcast_to((0.5 * k * p * p * np.stack([K[..., 0, 0], K[..., 1, 1]], axis=-1))[:, None, :],
+                            (len(K), B, 2))
+    a_xy = np.broadcast_to((0.5 * k * p * p * (K[..., 0, 1] + K[..., 1, 0]))[:, None], (len(K), B))
+    return {"nb_pos": pe + f * delta, "cr": amp * np.cos(phase), "ci": amp * np.sin(phase), "alpha": alpha,
+            "a_xy": a_xy}
+
+
+def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sensor, wavelength_nm: float,
+                     sub: int) -> np.ndarray:
+    """Centroid (m, 2) mm in the windows starting at pixels st (m, 2) of m lenslets whose blocks are ``block``
+    (``_local_block``)."""
     f, p, pix, W = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, int(sensor.centroid_window_px)
     lam = wavelength_nm * 1e-6
     k = 2 * np.pi / lam
     cut = float(sensor.centroid_threshold)
-    e = _neighbour_offsets(_XT_RING)  # (B, 2)
-    pe = p * e
-    delta = np.einsum("...ij,bj->...bi", K, pe)  # (..., n, B, 2): differential tilt of each neighbour
-    amp = np.exp(0.5 * np.einsum("...i,bi->...b", grad_log_i, pe))
-    phase = k * (0.5 * np.einsum("bi,...bi->...b", pe, delta) + (pe**2).sum(axis=1) / (2 * f))
-    cr, ci = amp * np.cos(phase), amp * np.sin(phase)
-    nb_pos = pe + f * delta  # neighbour spots relative to the own spot
+    pe = p * _neighbour_offsets(_XT_RING)  # (B, 2)
+    nb_pos, cr, ci, a_xy = block["nb_pos"], block["cr"], block["ci"], block["a_xy"]
+    alpha = block["alpha"][:, :, None, :]  # (m, B, 1, 2)
     edge0 = float(sensor.camera_offset_px) * pix
     offs = (np.arange(W * sub) + 0.5) / sub
-    # each sub-aperture's own curvature: the phase k K_ii (p t)^2 / 2 along its axes (the block shares the
-    # lenslet's K: a quadratic wavefront about it); K_xy's phase k K_xy p^2 t_x t_y is left out
-    alpha = (0.5 * k * p * p * np.stack([K[..., 0, 0], K[..., 1, 1]], axis=-1))[..., None, None, :]
-    pos = spot
-    for _ in range(iterations + 1):
-        st = np.floor((np.real(pos) - edge0) / pix - 0.5 * W + 0.5)  # first pixel of the window (whole pixels)
-        xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (..., n, S, 2) rel. own spot
-        # per neighbour and axis: sinc envelope and the phase ramp -k p e . xs / f
-        arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (..., n, B, S, 2)
-        er, ei = _curved_aperture(2 * np.pi * arg, alpha)  # each sub-aperture's spot field along x, y
-        ramp = -k * pe[:, None, :] * xs[..., None, :, :] / f
-        cos_r, sin_r = np.cos(ramp), np.sin(ramp)
-        ar, ai = er * cos_r - ei * sin_r, er * sin_r + ei * cos_r  # (..., n, B, S, 2)
-        yr = cr[..., None] * ar[..., 1] - ci[..., None] * ai[..., 1]  # C_b * A_y (..., n, B, S)
-        yi = cr[..., None] * ai[..., 1] + ci[..., None] * ar[..., 1]
-        xr, xi_ = ar[..., 0], ai[..., 0]
-        # contiguous stacks: numpy's matmul takes its fast path only then (complex ones under the complex step)
-        yrT, yiT = np.ascontiguousarray(np.swapaxes(yr, -1, -2)), np.ascontiguousarray(np.swapaxes(yi, -1, -2))
-        xr, xi_ = np.ascontiguousarray(xr), np.ascontiguousarray(xi_)
-        ur = yrT @ xr - yiT @ xi_  # (..., n, S_y, S_x)
-        ui = yrT @ xi_ + yiT @ xr
-        inten = ur * ur + ui * ui
-        sh = inten.shape[:-2]
-        inten = inten.reshape(sh + (W, sub, W, sub)).sum(axis=(-3, -1))  # pixels (..., n, W_y, W_x)
-        if cut > 0:  # the peak: the value at the real part's argmax (its derivative there)
-            flat = inten.reshape(sh + (W * W,))
-            idx = np.argmax(np.real(flat), axis=-1)
-            peak = np.take_along_axis(flat, idx[..., None], axis=-1)[..., 0]
-            inten = inten - cut * peak[..., None, None]
-            inten = np.where(np.real(inten) > 0, inten, 0.0)
-        pc = edge0 + (st[..., None, :] + np.arange(W)[:, None] + 0.5) * pix  # pixel centres (..., n, W, 2)
-        tot = inten.sum(axis=(-2, -1))
-        cx = np.einsum("...x,...x->...", inten.sum(axis=-2), pc[..., 0]) / tot
-        cy = np.einsum("...y,...y->...", inten.sum(axis=-1), pc[..., 1]) / tot
-        pos = np.stack([cx, cy], axis=-1)
-    return pos - spot
+    # each sub-aperture's own curvature: the phase k (K_xx X^2 + (K_xy + K_yx) X Y + K_yy Y^2) / 2, X = p t_x;
+    # K_xy's factor exp(i a t_x t_y) as sum_r (i a)^r / r! t_x^r t_y^r, terms zero beyond each sub-aperture's
+    # own R: the result does not depend on which lenslets share a pass
+    ranks = _xy_ranks(np.abs(np.real(a_xy)))  # (m, B)
+    R = int(ranks.max(initial=0))
+    r = np.arange(R + 1)
+    fact = np.cumprod(np.concatenate([[1.0], 1.0 / np.arange(1, R + 1)]))
+    pw = a_xy[..., None] ** r * fact * (r <= ranks[..., None])  # (m, B, R+1): a^r / r!
+    ir_re, ir_im = np.array([1.0, 0.0, -1.0, 0.0])[r % 4], np.array([0.0, 1.0, 0.0, -1.0])[r % 4]  # i^r
+    xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (m, S, 2) rel. own spot
+    arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (m, B, S, 2)
+    mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
+    ramp = (-k * pe[:, None, :] * xs[..., None, :, :] / f)[..., None]
+    cos_r, sin_r = np.cos(ramp), np.sin(ramp)
+    ar, ai = mr * cos_r - mi * sin_r, mr * sin_r + mi * cos_r  # (m, B, S, 2, R+1)
+    # y factor carries C_b (i a)^r / r!: its real and imaginary parts (real arithmetic for the complex step)
+    wr = cr[..., None] * ir_re - ci[..., None] * ir_im  # C_b i^r, (m, B, R+1)
+    wi = cr[..., None] * ir_im + ci[..., None] * ir_re
+    wr, wi = wr * pw, wi * pw
+    yr = wr[:, :, None, :] * ar[..., 1, :] - wi[:, :, None, :] * ai[..., 1, :]  # (m, B, S, R+1)
+    yi = wr[:, :, None, :] * ai[..., 1, :] + wi[:, :, None, :] * ar[..., 1, :]
+    m_, B, S = yr.shape[:3]
+    # stacks (m, S_y, B (R+1)) @ (m, B (R+1), S_x), contiguous: numpy's matmul takes its fast path only then
+    yrT = np.ascontiguousarray(np.moveaxis(yr, 2, 1).reshape(m_, S, -1))
+    yiT = np.ascontiguousarray(np.moveaxis(yi, 2, 1).reshape(m_, S, -1))
+    xr = np.ascontiguousarray(np.moveaxis(ar[..., 0, :], 2, -1).reshape(m_, -1, S))
+    xi_ = np.ascontiguousarray(np.moveaxis(ai[..., 0, :], 2, -1).reshape(m_, -1, S))
+    ur = yrT @ xr - yiT @ xi_  # (m, S_y, S_x)
+    ui = yrT @ xi_ + yiT @ xr
+    inten = ur * ur + ui * ui
+    inten = inten.reshape((m_, W, sub, W, sub)).sum(axis=(-3, -1))  # pixels (m, W_y, W_x)
+    if cut > 0:  # the peak: the value at the real part's argmax (its derivative there)
+        flat = inten.reshape((m_, W * W))
+        idx = np.argmax(np.real(flat), axis=-1)
+        peak = np.take_along_axis(flat, idx[..., None], axis=-1)[..., 0]
+        inten = inten - cut * peak[..., None, None]
+        inten = np.where(np.real(inten) > 0, inten, 0.0)
+    pc = edge0 + (st[..., None, :] + np.arange(W)[:, None] + 0.5) * pix  # pixel centres (m, W, 2)
+    tot = inten.sum(axis=(-2, -1))
+    cx = np.einsum("...x,...x->...", inten.sum(axis=-2), pc[..., 0]) / tot
+    cy = np.einsum("...y,...y->...", inten.sum(axis=-1), pc[..., 1]) / tot
+    return np.stack([cx, cy], axis=-1)
 
 
 @lru_cache(maxsize=16)

@@ -1,0 +1,104 @@
+"""The cross-talk kernel's pieces against independent numerical integrals (issue 21).
+
+``aperture.square_aperture_moments`` against a 400-node Gauss-Legendre rule, and
+``centroid.crosstalk_shift`` against a brute-force Fresnel integral of the whole 7 x 7 block of
+lenslets lit by a quadratic wavefront (with K_xy), sampled node by node: it shares none of the
+kernel's separable algebra (aperture moments, the K_xy series, the neighbours' spot positions).
+"""
+
+import numpy as np
+import pytest
+
+from lensforge.optics import centroid
+from lensforge.optics.aperture import square_aperture_field, square_aperture_moments
+from lensforge.optics.bench import Sensor
+
+
+def _gl(n):
+    t, w = np.polynomial.legendre.leggauss(n)
+    return 0.5 * t, 0.5 * w
+
+
+def test_aperture_moments_and_their_derivatives_are_the_integrals():
+    # M_r = int_{-1/2}^{1/2} t^r exp(i alpha t^2 - i beta t) dt, r <= 12 (the K_xy series' reach), on both sides of the series / Fresnel
+    # switch and of the beta split, up to curvatures beyond the co-designed bench's (|alpha| <= 6.6)
+    t, w = _gl(400)
+    beta = np.array([0.0, 0.3, 5.0, 9.99, 10.01, 30.0, -47.0, 170.0, -200.0])
+    R = 12
+    for alpha in (0.0, 1e-3, -1.0, 1.99, 2.0, -6.6, 12.0, 40.0):
+        E = np.exp(1j * alpha * t[None] ** 2 - 1j * beta[:, None] * t[None])
+        ref = np.stack([(E * t**r) @ w for r in range(R + 3)], axis=-1)
+        tol = 1e-12 + 2e-15 * np.exp(abs(alpha) / 4)  # the alpha series' cancellation, e^(|alpha| / 4)
+        re, im = square_aperture_moments(beta, alpha, R)
+        np.testing.assert_allclose(re + 1j * im, ref[:, : R + 1], rtol=0, atol=tol)
+        # a complex step along beta and alpha: dM_r/dbeta = -i M_(r+1), dM_r/dalpha = i M_(r+2)
+        h = 1e-30
+        re, im = square_aperture_moments(beta + 1j * h * 0.7, alpha + 1j * h * 0.3, R)
+        got = (re.imag + 1j * im.imag) / h
+        want = 0.7 * (-1j * ref[:, 1: R + 2]) + 0.3 * (1j * ref[:, 2: R + 3])
+        np.testing.assert_allclose(got, want, rtol=0, atol=tol)
+    re, im = square_aperture_field(beta, 0.0)  # flat: the sinc
+    np.testing.assert_allclose(re, np.sinc(beta / (2 * np.pi)), rtol=0, atol=1e-14)
+    assert np.all(im == 0)
+
+
+def _brute_force_centroid(spot, K, g, sensor, wl_nm, sub, nodes=160):
+    """Window centroid of the 7 x 7 block's coherent field, integrated node by node over each sub-aperture:
+    U(x) = sum_b exp(-i k |c_b|^2 / 2f) int_b E(X) exp(i k X . (c_b - x) / f) dX, E = exp(g.c_b / 2 + i k W),
+    W = s . X + X K X / 2 about the own lenslet's centre (0), s = spot / f (the amplitude is constant over
+    each sub-aperture: its own irradiance weighting is the fast model's centroid_slopes, not the kernel's)."""
+    f, p, pix, Wpx = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, sensor.centroid_window_px
+    k = 2 * np.pi / (wl_nm * 1e-6)
+    s = spot / f
+    edge0 = sensor.camera_offset_px * pix
+    st = np.floor((spot - edge0) / pix - 0.5 * Wpx + 0.5)
+    xs = edge0 + (st[:, None] + (np.arange(Wpx * sub) + 0.5)[None] / sub) * pix  # (2, S) camera samples
+    t, w = _gl(nodes)
+    Ks = 0.5 * (K + K.T)
+    U = np.zeros((Wpx * sub, Wpx * sub), complex)
+    for ex in range(-3, 4):
+        for ey in range(-3, 4):
+            c = p * np.array([ex, ey], float)
+            X, Y = np.meshgrid(c[0] + p * t, c[1] + p * t, indexing="xy")  # (Y nodes, X nodes)
+            Wf = s[0] * X + s[1] * Y + 0.5 * (Ks[0, 0] * X * X + 2 * Ks[0, 1] * X * Y + Ks[1, 1] * Y * Y)
+            P = np.exp(0.5 * (g @ c) + 1j * k * Wf) * np.outer(w, w) * p * p
+            Gx = np.exp(1j * k * np.outer(c[0] - xs[0], c[0] + p * t) / f)  # (S, nodes)
+            Gy = np.exp(1j * k * np.outer(c[1] - xs[1], c[1] + p * t) / f)
+            U += np.exp(-1j * k * (c @ c) / (2 * f)) * (Gy @ P @ Gx.T)
+    inten = (np.abs(U) ** 2).reshape(Wpx, sub, Wpx, sub).sum(axis=(1, 3))
+    pc = edge0 + (st[:, None] + np.arange(Wpx)[None] + 0.5) * pix
+    tot = inten.sum()
+    return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / tot
+
+
+@pytest.mark.parametrize("K_xy", [0.0, 0.012])
+def test_kernel_is_the_blocks_fresnel_integral(K_xy):
+    # one lenslet of the default sensor under a strongly curved, obliquely astigmatic wavefront (alpha up to 4.4,
+    # a = k p^2 K_xy up to 3.2: the co-designed bench's range) with an irradiance gradient, off the pixel grid
+    sensor = Sensor()
+    wl = 532.0
+    spot = np.array([0.0123, -0.0071])
+    K = np.array([[0.028, K_xy], [K_xy, -0.019]])
+    g = np.array([0.6, -0.4])
+    sub = 2
+    got = centroid.crosstalk_shift(spot[None], spot[None], K[None], g[None], sensor, wl, iterations=0, sub=sub)[0]
+    want = _brute_force_centroid(spot, K, g, sensor, wl, sub) - spot
+    scale = np.abs(want).max()
+    assert scale > 2e-5  # the effect is there: > 20 nm
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * scale + 1e-12)
+
+
+def test_kernel_does_not_depend_on_how_lenslets_share_a_pass():
+    # the K_xy series is truncated per lenslet, so a lenslet's shift is the same alone and among others
+    sensor = Sensor()
+    rng = np.random.default_rng(3)
+    n = 40
+    spot = rng.uniform(-0.02, 0.02, (n, 2))
+    K = rng.uniform(-0.03, 0.03, (n, 2, 2))
+    K[::7] *= 0.01  # weakly curved lenslets next to strongly curved ones
+    g = rng.uniform(-0.5, 0.5, (n, 2))
+    together = centroid.crosstalk_shift(spot, spot, K, g, sensor, 532.0)
+    alone = np.concatenate([centroid.crosstalk_shift(spot[i:i + 1], spot[i:i + 1], K[i:i + 1], g[i:i + 1], sensor, 532.0)
+                            for i in range(n)])
+    # equal to rounding (the zero-padded ranks change the matmul's summation order, not its terms)
+    np.testing.assert_allclose(together, alone, rtol=0, atol=1e-10 * np.abs(alone).max())
