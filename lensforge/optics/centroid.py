@@ -204,8 +204,8 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     two plan poses) the K_xx, K_yy curvature took the Zernike lens's Z4 from 18-24 to 0.5-4.4 sigma and
     the worst mode over the three lenses from 24 to 6.7 sigma (an earlier second-order expansion had
     moved modes the wrong way); K_xy took the co-designed design's worst mode (nominal and three plan
-    corners, ~100 mrad slopes) from 8.9-12.6 to 5.5-8.5 sigma, and moved the paper lenses' by <= 2 sigma,
-    mixed. Cost on the co-designed lenslets: 8.2 ms each (3.8 ms without K_xy). The window (``centroid_window_px``) is placed on whole pixels on the spot
+    corners, ~100 mrad slopes) from 8.9-12.6 to 5.5-8.5 sigma, and left the paper lenses' at 1.6-6.7
+    sigma (1.7-6.7 without), moving single modes by up to 4 sigma (the extended polynomial lens's Z4). Cost on the co-designed lenslets: 8.2 ms each (3.8 ms without K_xy). The window (``centroid_window_px``) is placed on whole pixels on the spot
     (pixel edges at ``camera_offset_px`` + k pixels), re-centred on its centroid ``iterations`` times
     (recomputed only for the lenslets whose window moved); ``centroid_threshold`` x the window's peak is
     cut. Runs ``_XT_CHUNK`` lenslets at a time. Written in real arithmetic (cos, sin, the aperture
