@@ -3,7 +3,8 @@
 Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design DESIGN.json]
      [--lenses polynomial,extended_polynomial] [--poses 4] [--variants base,cut5,round,noxtalk]
      [--spp 4] [--json OUT.json]
-     ... --design DESIGN.json --sessions 6 --spp 4 [--calibration-tolerances default]: the session study
+     ... --design DESIGN.json --sessions 6 --spp 4 [--calibration-tolerances default] [--calibration-crosstalk neighbours]:
+         the session study (calibrate with the cross-talk model against the physical sensor)
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
      ... --cost: S(p) with and without the cross-talk model, one physical pose
      ... --spheres: analytic spherical waves (R = +-20 ... 100 mm, uniform and Gaussian beam) through the
@@ -179,6 +180,7 @@ def main(argv=None):
     ap.add_argument("--sessions", type=int, default=0, help="run the session study (N sessions per sensor) instead")
     ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
     ap.add_argument("--sensors", default="model,physical", help="session study: which sensors measure")
+    ap.add_argument("--calibration-crosstalk", default=None, help="session study: calibrate's cross-talk model ('neighbours')")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
@@ -200,7 +202,8 @@ def main(argv=None):
         return
     if a.sessions:
         ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
-        out = sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")), calibration_tolerances=ct)
+        out = sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")), calibration_tolerances=ct,
+                       calibration_crosstalk=a.calibration_crosstalk)
         if a.json:
             with open(a.json, "w") as fh:
                 json.dump(out, fh)
@@ -224,17 +227,21 @@ def main(argv=None):
 
 
 def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical"), seed: int = 0,
-             tolerances=None, calibration_tolerances=None) -> dict:
+             tolerances=None, calibration_tolerances=None, calibration_crosstalk: str | None = None) -> dict:
     """Session study: n_sessions 12-pose sessions per sensor (same seeds, same plan), calibrated
-    (joint; calibration_tolerances None = the lens known), scored on Z (session_sim.check_sessions)."""
+    (joint; calibration_tolerances None = the lens known; calibration_crosstalk: calibrate's sensor model,
+    e.g. 'neighbours', default the design bench's), scored on Z (session_sim.check_sessions)."""
     from lensforge.verification.session_sim import check_sessions
 
+    cal_bench = None
+    if calibration_crosstalk:
+        cal_bench = load_design_lens(design)[1].replace(sensor={"crosstalk": calibration_crosstalk})
     out = {}
     for s in sensors:
         sensor = PhysicalSensor(samples_per_pixel=spp) if s == "physical" else "model"
         t0 = time.perf_counter()
         r = check_sessions(design, n_sessions, seed=seed, tolerances=tolerances, sensor=sensor,
-                           calibration_tolerances=calibration_tolerances,
+                           calibration_tolerances=calibration_tolerances, calibration_bench=cal_bench,
                            progress=lambda k, n: print(f"  {s}: session {k}/{n}", flush=True))
         r = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
         r["seconds"] = time.perf_counter() - t0

@@ -102,3 +102,19 @@ def test_kernel_does_not_depend_on_how_lenslets_share_a_pass():
                             for i in range(n)])
     # equal to rounding (the zero-padded ranks change the matmul's summation order, not its terms)
     np.testing.assert_allclose(together, alone, rtol=0, atol=1e-10 * np.abs(alone).max())
+
+
+def test_plan_on_a_cross_talk_bench_searches_on_the_own_centroid_model():
+    # the candidate search does not run the ~100x dearer cross-talk model (before: > 16 min for a paper-lens plan);
+    # the chosen poses are the own-centroid plan's, and their predicted Z sigma is the cross-talk model's: a few
+    # percent wider (the window truncation and the neighbours' light cost information), never narrower
+    from lensforge.calibration.session import load_design_lens, plan
+
+    _, bench = load_design_lens("polynomial")
+    own = plan("polynomial", bench=bench, n=3, seed=1, tolerances="none", n_candidates=20)
+    xt = plan("polynomial", bench=bench.replace(sensor={"crosstalk": "neighbours"}), n=3, seed=1, tolerances="none",
+              n_candidates=20)
+    np.testing.assert_array_equal(xt.x, own.x)
+    ratio = xt.z_std / own.z_std
+    assert np.all(ratio > 1.0) and np.all(ratio < 1.2), ratio
+    assert xt.bench.sensor.crosstalk == "neighbours"

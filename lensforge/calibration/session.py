@@ -40,7 +40,7 @@ from ..optics.zernike import from_thorlabs_vector
 from . import formats, thorlabs
 from .cell_plausibility import check_cell_poses
 from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
-from .joint_design import candidate_information, design_joint_poses
+from .joint_design import candidate_information, design_joint_poses, predicted_joint_uncertainty
 from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses
 from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
@@ -205,7 +205,10 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     The choice is ``joint_design.design_joint_poses`` (Ds-optimal for Z with X, the robot
     errors and the lens parameters theta as nuisances; theta from
     ``lens_params.parameterise`` over the lit candidates). Every pose is reach-checked by
-    inverse kinematics and pupil-lit on the design's model.
+    inverse kinematics and pupil-lit on the design's model. On a bench with the cross-talk
+    sensor model the candidates are searched on the own-centroid model (the cross-talk model
+    costs ~100x a pose and scales the CRLB near-uniformly) and the chosen plan's prediction
+    (``predicted``, ``z_std``) comes from the cross-talk model.
 
     Parameters
     ----------
@@ -263,8 +266,12 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     lens_known = no_tolerance_model(tolerances)  # no prior: the lens as designed, theta has no direction
     tol, tol_label = resolve_tolerances("default" if lens_known else tolerances)
     scene = robot_scene(robot, bench.placement.distance_mm)
-    model = ForwardModel(bench, lens)
-    lens_pose_crlb(bench, lens)  # a lens whose pose is not observable cannot calibrate: say so first
+    # the candidate search runs on the own-centroid sensor model: the cross-talk model (``sensor.crosstalk``)
+    # costs ~100x a pose and scales the pose CRLB by a near-uniform 1.04-1.11 (paper lenses, 3 poses), which
+    # leaves the ranking of candidates; the chosen plan's prediction is then the bench's own model's
+    search = bench if bench.sensor.crosstalk == "none" else bench.replace(sensor={"crosstalk": "none"})
+    model = ForwardModel(search, lens)
+    lens_pose_crlb(search, lens)  # a lens whose pose is not observable cannot calibrate: say so first
     rng = np.random.default_rng(seed)
     cand = candidate_poses(rng, n_candidates, work_translation_mm, work_rotation_rad)
     cand = cand[lit_mask(model, cand, lit_margin_mm)]
@@ -274,9 +281,9 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
                              f"{len(cand)} poses")
     # theta's directions over a sample of the working range (the joint fit re-derives them over its own poses)
     sub = cand[rng.choice(len(cand), min(len(cand), 32), replace=False)]
-    param = parameterise(bench, lens, tol, sub, as_designed=lens_known)
+    param = parameterise(search, lens, tol, sub, as_designed=lens_known)
     try:
-        res = design_joint_poses(bench, param, scene, n, cand, robot_cov=robot.noise.cov, check_reach=True)
+        res = design_joint_poses(search, param, scene, n, cand, robot_cov=robot.noise.cov, check_reach=True)
     except ConfigError as e:
         raise PoseRangeError(f"plan: no {n} lit candidate poses the {robot.name} can reach in the working box "
                              f"(+-{work_translation_mm} mm, +-{math.degrees(work_rotation_rad):.1f} deg); check the "
@@ -290,15 +297,18 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     # most len(cand) poses whatever n_random_sets * n is (150-pose plans reached 3.3 GB tracing 750)
     sets = np.array([rng.choice(len(cand), n, replace=False) for _ in range(n_random_sets)])
     used, inverse = np.unique(sets, return_inverse=True)
-    Iu = candidate_information(bench, param, scene, cand[used], robot.noise.cov)[0]
+    Iu = candidate_information(search, param, scene, cand[used], robot.noise.cov)[0]
     F = Iu[inverse.reshape(sets.shape)].sum(axis=1)
     F[:, 12:, 12:] += np.eye(param.k)  # theta's N(0, I) prior
     rand = [float(np.sqrt(np.trace(np.linalg.pinv(f, hermitian=True)[6:9, 6:9]))) for f in F]
+    random_ratio = float(np.median(rand)) / res.chosen["Z_translation_mm"]  # both on the search model
+    if search is not bench:
+        res = replace(res, chosen=predicted_joint_uncertainty(bench, param, scene, res.x, robot.noise.cov))
     cov = res.chosen["cov"]
     cov_known = np.linalg.inv(np.linalg.inv(cov)[:12, :12])
     return Plan(ids=tuple(str(i + 1) for i in range(n)), x=res.x, A=res.A, joints=np.array(joints),
                 predicted=res.chosen, z_std=np.sqrt(np.diag(cov)[6:12]), z_std_known_lens=np.sqrt(np.diag(cov_known)[6:12]),
-                random_ratio=float(np.median(rand)) / res.chosen["Z_translation_mm"], robot=robot, scene=scene,
+                random_ratio=random_ratio, robot=robot, scene=scene,
                 bench=bench, work_translation_mm=work_translation_mm, work_rotation_rad=work_rotation_rad,
                 tolerances="none" if lens_known else tol_label)
 

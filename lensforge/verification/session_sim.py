@@ -277,9 +277,11 @@ NEES_3SIGMA_6DOF = float(chi2_dist.ppf(math.erf(3 / math.sqrt(2)), 6))
 
 def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=None, method: str = "joint",
                     calibration_tolerances="default", folder: Path | None = None,
-                    sensor: str | PhysicalSensor = "model") -> dict:
+                    sensor: str | PhysicalSensor = "model", calibration_bench: Bench | None = None) -> dict:
     """Simulate the session of ``seed`` on ``session_plan``, calibrate it through the
     files a real session writes (in ``folder``, default a temporary one) and score Z.
+    calibration_bench: the bench calibrate models the sensor with (default ``bench``; e.g. the
+    cross-talk model, ``sensor.crosstalk = "neighbours"``, against a physical sensor).
 
     Returns {"seed", "failed": None or the error, "nees": e^T cov_Z^-1 e (right
     perturbation, 6 DOF), "inside_3sigma_each_axis": all six parent-frame components
@@ -290,7 +292,7 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_bundle(Path(folder or tmp) / f"s{seed}", s.files())
         try:
-            r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=bench,
+            r = calibrate(lens, paths["wfs_zernike.csv"], paths["robot_poses.csv"], bench=calibration_bench or bench,
                           robot=session_plan.robot, method=method, tolerances=calibration_tolerances)
         except LensforgeError as e:
             return {"seed": int(seed), "failed": f"seed {seed}: {e}"}
@@ -323,12 +325,13 @@ def summarise_sessions(outcomes) -> dict:
 def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
                    robot: RobotModel | str | None = None, n: int = 12, method: str = "joint",
                    calibration_tolerances="default", progress=None, plan_seed: int | None = None,
-                   sensor: str | PhysicalSensor = "model") -> dict:
+                   sensor: str | PhysicalSensor = "model", calibration_bench: Bench | None = None) -> dict:
     """Simulate ``n_sessions`` seeded sessions (seeds seed .. seed + n_sessions - 1, one
     shared plan of seed ``plan_seed``, default ``seed``), calibrate each through the
     files a real session writes, and score Z (``session_outcome``).
     method: the calibrate method ("joint", the default, or "two-stage");
-    calibration_tolerances: the joint method's prior (as calibrate's ``tolerances``).
+    calibration_tolerances: the joint method's prior (as calibrate's ``tolerances``);
+    calibration_bench: the bench calibrate models the sensor with (default the planning one).
 
     Returns {"nees": (k,) e^T cov_Z^-1 e of Z (right perturbation, 6 DOF), "inside_3sigma":
     fraction with NEES <= NEES_3SIGMA_6DOF (the 3-sigma-equivalent ellipsoid), "inside_3sigma_each_axis":
@@ -343,7 +346,8 @@ def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, b
     outcomes = []
     for k in range(n_sessions):
         outcomes.append(session_outcome(lens, bench, p, seed + k, tolerances=tolerances, method=method,
-                                        calibration_tolerances=calibration_tolerances, sensor=sensor))
+                                        calibration_tolerances=calibration_tolerances, sensor=sensor,
+                                        calibration_bench=calibration_bench))
         if progress is not None:
             progress(k + 1, n_sessions)
     return summarise_sessions(outcomes)
