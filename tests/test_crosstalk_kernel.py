@@ -111,9 +111,12 @@ def test_plan_on_a_cross_talk_bench_searches_on_the_own_centroid_model():
     from lensforge.calibration.session import load_design_lens, plan
 
     _, bench = load_design_lens("polynomial")
-    own = plan("polynomial", bench=bench, n=3, seed=1, tolerances="none", n_candidates=20)
+    stages_own, stages_xt = [], []
+    own = plan("polynomial", bench=bench, n=3, seed=1, tolerances="none", n_candidates=20, progress=stages_own.append)
     xt = plan("polynomial", bench=bench.replace(sensor={"crosstalk": "neighbours"}), n=3, seed=1, tolerances="none",
-              n_candidates=20)
+              n_candidates=20, progress=stages_xt.append)
+    # the progress bar names each stage, the cross-talk prediction (the long one) included
+    assert stages_own == stages_xt[:-1] and "cross-talk" in stages_xt[-1] and len(stages_own) >= 2
     np.testing.assert_array_equal(xt.x, own.x)
     ratio = xt.z_std / own.z_std
     assert np.all(ratio > 1.0) and np.all(ratio < 1.2), ratio

@@ -199,7 +199,7 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
          seed: int = 0, tolerances: Tolerances | str | PathLike[str] | None = "default",
          work_translation_mm: float | None = None, work_rotation_rad: float | None = None,
          lit_margin_mm: float = 0.3, n_candidates: int = 100,
-         n_random_sets: int = 5) -> Plan:
+         n_random_sets: int = 5, progress: Callable[[str], None] | None = None) -> Plan:
     """Calibration poses for the joint calibration (see the module docstring).
 
     The choice is ``joint_design.design_joint_poses`` (Ds-optimal for Z with X, the robot
@@ -236,6 +236,8 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
         Candidate poses the design chooses from.
     n_random_sets : int
         Random n-pose plans of the lit candidates the design is compared with (median).
+    progress : callable, optional
+        Called with the name of each stage as it starts (a progress bar's description).
 
     Returns
     -------
@@ -270,6 +272,8 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     # costs ~100x a pose and scales the pose CRLB by a near-uniform 1.04-1.11 (paper lenses, 3 poses), which
     # leaves the ranking of candidates; the chosen plan's prediction is then the bench's own model's
     search = bench if bench.sensor.crosstalk == "none" else bench.replace(sensor={"crosstalk": "none"})
+    stage = progress or (lambda _text: None)
+    stage("plan: lighting the candidate poses")
     model = ForwardModel(search, lens)
     lens_pose_crlb(search, lens)  # a lens whose pose is not observable cannot calibrate: say so first
     rng = np.random.default_rng(seed)
@@ -281,6 +285,7 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
                              f"{len(cand)} poses")
     # theta's directions over a sample of the working range (the joint fit re-derives them over its own poses)
     sub = cand[rng.choice(len(cand), min(len(cand), 32), replace=False)]
+    stage("plan: choosing the poses")
     param = parameterise(search, lens, tol, sub, as_designed=lens_known)
     try:
         res = design_joint_poses(search, param, scene, n, cand, robot_cov=robot.noise.cov, check_reach=True)
@@ -303,6 +308,7 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     rand = [float(np.sqrt(np.trace(np.linalg.pinv(f, hermitian=True)[6:9, 6:9]))) for f in F]
     random_ratio = float(np.median(rand)) / res.chosen["Z_translation_mm"]  # both on the search model
     if search is not bench:
+        stage("plan: predicting the chosen poses with the cross-talk sensor model")
         res = replace(res, chosen=predicted_joint_uncertainty(bench, param, scene, res.x, robot.noise.cov))
     cov = res.chosen["cov"]
     cov_known = np.linalg.inv(np.linalg.inv(cov)[:12, :12])

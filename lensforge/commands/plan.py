@@ -12,6 +12,7 @@ from typing import Optional
 import typer
 
 from ..errors import ConfigError
+from ..progress import progress_bar
 from ._common import ROBOT_HELP, bench_arg, check_seed, emit_json, info
 
 def plan_cmd(
@@ -32,6 +33,7 @@ def plan_cmd(
                                  help="comma list of calibration.formats.PLAN_WRITERS names; auto = csv,json (+krl for a KUKA)"),
     out: Path = typer.Option(Path("exports/plan"), "-o", "--out", help="output folder"),
     json_out: bool = typer.Option(False, "--json", help="machine-readable summary on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ) -> None:
     """Plan the robot's calibration poses.
 
@@ -51,8 +53,10 @@ def plan_cmd(
     for opt, v, hi in (("--box-mm", box_mm, 10.0), ("--box-deg", box_deg, 30.0)):
         if v is not None and not (math.isfinite(v) and 0 < v <= hi):
             raise ConfigError(f"{opt}: the plan box's half-width must be in (0, {hi:g}], got {v!r}")
-    p = plan(design, bench=bench_arg(bench), robot=robot, n=n, seed=seed, tolerances=tolerances,
-             work_translation_mm=box_mm, work_rotation_rad=None if box_deg is None else math.radians(box_deg))
+    with progress_bar(None, "plan", enabled=not (no_progress or json_out)) as bar:
+        p = plan(design, bench=bench_arg(bench), robot=robot, n=n, seed=seed, tolerances=tolerances,
+                 work_translation_mm=box_mm, work_rotation_rad=None if box_deg is None else math.radians(box_deg),
+                 progress=bar.describe)
     fm = tuple(s.strip() for s in formats_.split(",") if s.strip())
     if fm == ("auto",):
         fm = ("csv", "json", "krl") if p.robot.name.upper().startswith("KUKA") else ("csv", "json")
