@@ -33,12 +33,12 @@ from scipy import special
 
 from .jit import compile_notice
 
-__all__ = ["square_aperture_field", "square_aperture_moments", "ALPHA_FRESNEL", "BETA_SPLIT"]
+__all__ = ["square_aperture_moments", "ALPHA_FRESNEL", "BETA_SPLIT"]
 
 ALPHA_FRESNEL = 2.0  # |alpha| from which the Fresnel integrals are taken
 BETA_SPLIT = 10.0  # |beta| from which the moments come from integration by parts
 _SERIES_TOL = 1e-15  # the alpha series' last term: (|alpha| / 4)^N / N! below this
-_MAX_TERMS = 40  # alpha-series terms at most: |alpha| <= 40 reaches 1e-15
+_MAX_TERMS = 40  # alpha-series terms at most: (|alpha| / 4)^40 / 40! < 1e-15 for |alpha| <= 26 (1e-8 at 40)
 _RECURSION_GROWTH = 1e3  # the Fresnel branch's upward moment recursion: rounding growth allowed
 _BETA_TERMS = 26  # power-series terms of the moments below BETA_SPLIT: (5)^52 / 52! ~ 1e-31
 
@@ -178,9 +178,3 @@ def square_aperture_moments(beta, alpha, r_max: int = 0) -> tuple[np.ndarray, np
     re = j[..., 0] + 1j * (j[..., 2] * db + j[..., 4] * da)
     im = j[..., 1] + 1j * (j[..., 3] * db + j[..., 5] * da)
     return re, im
-
-
-def square_aperture_field(beta, alpha) -> tuple[np.ndarray, np.ndarray]:
-    """(Re, Im) of A(beta, alpha) = M_0 (``square_aperture_moments``)."""
-    re, im = square_aperture_moments(beta, alpha, 0)
-    return re[..., 0], im[..., 0]

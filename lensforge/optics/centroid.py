@@ -205,11 +205,13 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     the worst mode over the three lenses from 24 to 6.7 sigma (an earlier second-order expansion had
     moved modes the wrong way); K_xy took the co-designed design's worst mode (nominal and three plan
     corners, ~100 mrad slopes) from 8.9-12.6 to 5.5-8.5 sigma, and left the paper lenses' at 1.6-6.7
-    sigma (1.7-6.7 without), moving single modes by up to 4 sigma (the extended polynomial lens's Z4). Cost on the co-designed lenslets: 8.2 ms each (3.8 ms without K_xy). The window (``centroid_window_px``) is placed on whole pixels on the spot
-    (pixel edges at ``camera_offset_px`` + k pixels), re-centred on its centroid ``iterations`` times
-    (recomputed only for the lenslets whose window moved); ``centroid_threshold`` x the window's peak is
-    cut. Runs ``_XT_CHUNK`` lenslets at a time. Written in real arithmetic (cos, sin, the aperture
-    moments' jets) so that a complex step through it gives its exact derivative.
+    sigma (1.7-6.7 without), moving single modes by up to 4 sigma (the extended polynomial lens's Z4).
+    Cost on the co-designed lenslets: 8.2 ms each (3.8 ms without K_xy). The window
+    (``centroid_window_px``) is placed on whole pixels on the spot (pixel edges at ``camera_offset_px``
+    + k pixels), re-centred on its centroid ``iterations`` times (recomputed only for the lenslets whose
+    window moved); ``centroid_threshold`` x the window's peak is cut. Runs ``_XT_CHUNK`` lenslets at a
+    time. Written in real arithmetic (cos, sin, the aperture moments' jets) so that a complex step
+    through it gives its exact derivative.
     """
     lead = np.broadcast_shapes(spot.shape[:-1], K.shape[:-2], grad_log_i.shape[:-1])
     dt = np.result_type(spot, K, grad_log_i)
@@ -219,16 +221,16 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     out = np.empty(sp.shape, dtype=dt)
     for i in range(0, len(sp), _XT_CHUNK):
         c = slice(i, i + _XT_CHUNK)
-        out[c] = tracked_window_shift(sp[c], _local_block(Kf[c], gf[c], sensor, wavelength_nm), sensor, wavelength_nm,
-                                      iterations, sub)
+        out[c] = _tracked_window_shift(sp[c], _local_block(Kf[c], gf[c], sensor, wavelength_nm), sensor,
+                                       wavelength_nm, iterations, sub)
     return out.reshape(lead + (2,))
 
 
-def tracked_window_shift(spot: np.ndarray, block: dict, sensor: Sensor, wavelength_nm: float, iterations: int = 1,
-                         sub: int = 2) -> np.ndarray:
-    """Centroid minus spot (m, 2) mm of m lenslets whose blocks are ``block`` (``_local_block``'s fields, any
-    source): the whole-pixel window on the spot, re-centred on its centroid ``iterations`` times (recomputed
-    only for the lenslets whose window moved)."""
+def _tracked_window_shift(spot: np.ndarray, block: dict, sensor: Sensor, wavelength_nm: float, iterations: int,
+                          sub: int) -> np.ndarray:
+    """Centroid minus spot (m, 2) mm of m lenslets whose blocks are ``block`` (``_local_block``): the whole-pixel
+    window on the spot, re-centred on its centroid ``iterations`` times (recomputed only for the lenslets whose
+    window moved)."""
     pix, W = sensor.pixel_mm, int(sensor.centroid_window_px)
     edge0 = float(sensor.camera_offset_px) * pix
     st = _window_start(spot, edge0, pix, W)
@@ -252,18 +254,16 @@ def _window_start(pos: np.ndarray, edge0: float, pix: float, W: int) -> np.ndarr
 def _local_block(K: np.ndarray, grad_log_i: np.ndarray, sensor: Sensor, wavelength_nm: float) -> dict:
     """The (2 _XT_RING + 1)^2 block of m lenslets under their local quadratic wavefront (the block shares the
     lenslet's K): per lenslet and neighbour b, its spot relative to the own spot nb_pos (m, B, 2), its complex
-    amplitude (cr, ci) (m, B) (relative amplitude, piston and the lenslets' focusing phase), and its sub-aperture's
-    curvature: alpha (m, B, 2) = k p^2 (K_xx, K_yy) / 2 and a_xy (m, B) = k p^2 (K_xy + K_yx) / 2."""
+    amplitude (cr, ci) (m, B) (relative amplitude, piston and the lenslets' focusing phase), and the curvature every
+    sub-aperture of the block shares: alpha (m, 2) = k p^2 (K_xx, K_yy) / 2 and a_xy (m,) = k p^2 (K_xy + K_yx) / 2."""
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     k = 2 * np.pi / (wavelength_nm * 1e-6)
     pe = p * _neighbour_offsets(_XT_RING)  # (B, 2)
     delta = np.einsum("...ij,bj->...bi", K, pe)  # (m, B, 2): differential tilt of each neighbour
     amp = np.exp(0.5 * np.einsum("...i,bi->...b", grad_log_i, pe))
     phase = k * (0.5 * np.einsum("bi,...bi->...b", pe, delta) + (pe**2).sum(axis=1) / (2 * f))
-    B = len(pe)
-    alpha = np.broadcast_to((0.5 * k * p * p * np.stack([K[..., 0, 0], K[..., 1, 1]], axis=-1))[:, None, :],
-                            (len(K), B, 2))
-    a_xy = np.broadcast_to((0.5 * k * p * p * (K[..., 0, 1] + K[..., 1, 0]))[:, None], (len(K), B))
+    alpha = 0.5 * k * p * p * np.stack([K[..., 0, 0], K[..., 1, 1]], axis=-1)
+    a_xy = 0.5 * k * p * p * (K[..., 0, 1] + K[..., 1, 0])
     return {"nb_pos": pe + f * delta, "cr": amp * np.cos(phase), "ci": amp * np.sin(phase), "alpha": alpha,
             "a_xy": a_xy}
 
@@ -278,17 +278,17 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     cut = float(sensor.centroid_threshold)
     pe = p * _neighbour_offsets(_XT_RING)  # (B, 2)
     nb_pos, cr, ci, a_xy = block["nb_pos"], block["cr"], block["ci"], block["a_xy"]
-    alpha = block["alpha"][:, :, None, :]  # (m, B, 1, 2)
+    alpha = block["alpha"][:, None, None, :]  # (m, 1, 1, 2)
     edge0 = float(sensor.camera_offset_px) * pix
     offs = (np.arange(W * sub) + 0.5) / sub
     # each sub-aperture's own curvature: the phase k (K_xx X^2 + (K_xy + K_yx) X Y + K_yy Y^2) / 2, X = p t_x;
     # K_xy's factor exp(i a t_x t_y) as sum_r (i a)^r / r! t_x^r t_y^r, terms zero beyond each sub-aperture's
     # own R: the result does not depend on which lenslets share a pass
-    ranks = _xy_ranks(np.abs(np.real(a_xy)))  # (m, B)
+    ranks = _xy_ranks(np.abs(np.real(a_xy)))  # (m,)
     R = int(ranks.max(initial=0))
     r = np.arange(R + 1)
     fact = np.cumprod(np.concatenate([[1.0], 1.0 / np.arange(1, R + 1)]))
-    pw = a_xy[..., None] ** r * fact * (r <= ranks[..., None])  # (m, B, R+1): a^r / r!
+    pw = (a_xy[:, None] ** r * fact * (r <= ranks[:, None]))[:, None, :]  # (m, 1, R+1): a^r / r!
     ir_re, ir_im = np.array([1.0, 0.0, -1.0, 0.0])[r % 4], np.array([0.0, 1.0, 0.0, -1.0])[r % 4]  # i^r
     xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (m, S, 2) rel. own spot
     arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (m, B, S, 2)
