@@ -59,6 +59,7 @@ def _listing(p: Path):
     ("study", ["spherical", "-n", "2", "--workers", "0", "--no-progress"], "st"),
     ("export", ["spherical", "--stl", "--no-slicer"], "ex"),
     ("demo", ["--quick"], "demo"),
+    ("plan", ["polynomial", "-n", "4", "--no-progress"], "pl"),
 ])
 def test_full_disk_refused_before_work(small_fs, cmd, args, target):
     (small_fs / "filler").write_bytes(b"\0" * 56 * 1024)
@@ -72,6 +73,7 @@ def test_full_disk_refused_before_work(small_fs, cmd, args, target):
     ("design", ["--max-evals", "12", "--no-progress"], "d.json"),
     ("plot", ["spherical"], "plots"),
     ("study", ["spherical", "-n", "2", "--workers", "0", "--no-progress"], "st"),
+    ("plan", ["polynomial", "-n", "4", "--no-progress"], "pl"),
 ])
 def test_read_only_folder_refused(read_only, cmd, args, target):
     code, _, err = cli(cmd, *args, "-o", read_only / target)

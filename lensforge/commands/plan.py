@@ -12,6 +12,7 @@ from typing import Optional
 import typer
 
 from ..errors import ConfigError
+from ..fileio import check_output
 from ..progress import progress_bar
 from ._common import ROBOT_HELP, bench_arg, check_seed, emit_json, info
 
@@ -50,6 +51,7 @@ def plan_cmd(
 
     check_seed(seed)
     check_poses_count(n, "-n/--poses")
+    check_output(out, folder=True, need_mb=1)  # before the search: a cross-talk bench's plan takes minutes
     for opt, v, hi in (("--box-mm", box_mm, 10.0), ("--box-deg", box_deg, 30.0)):
         if v is not None and not (math.isfinite(v) and 0 < v <= hi):
             raise ConfigError(f"{opt}: the plan box's half-width must be in (0, {hi:g}], got {v!r}")
