@@ -104,7 +104,7 @@ def number(v, where: str, rng: Num | None = None) -> float:
         low = f <= rng.lo if rng.lo_open else f < rng.lo
         if low or f > rng.hi:
             raise ConfigError(f"{where}: must be {rng.describe()}, got {v!r}"
-                              + (f"; check the unit ({rng.unit})" if rng.unit else ""))
+                              + (f"; check the unit ({rng.unit.strip('()')})" if rng.unit else ""))
     return f
 
 
