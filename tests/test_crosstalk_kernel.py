@@ -122,3 +122,49 @@ def test_plan_on_a_cross_talk_bench_searches_on_the_own_centroid_model():
     ratio = xt.z_std / own.z_std
     assert np.all(ratio > 1.0) and np.all(ratio < 1.2), ratio
     assert xt.bench.sensor.crosstalk == "neighbours"
+
+
+def _xt_model():
+    import lensforge as lf
+    from lensforge.optics.shack_hartmann import ForwardModel
+
+    return ForwardModel(lf.Bench.default().replace(sensor={"crosstalk": "neighbours"}), lf.paper_lens("polynomial"))
+
+
+# a calibration pose of the paper polynomial lens (5 deg tilts: the block's cross term a up to 0.17, separable form)
+_PLAN_POSE = np.array([[0.5, 0.5, -0.5, -0.087, -0.087, -0.087]])
+
+
+def test_frozen_windows_make_the_model_smooth_and_leave_its_value():
+    # whole-pixel windows make h jump where a spot crosses a half pixel (~3 whitened units, every ~25 sigma of
+    # rotation); frozen at a linearisation point (the joint fit's windows) h is smooth and its exact Jacobian
+    # predicts a 1e-4 rad step to its O(h^2) (8e-5), across which the free placement jumps (0.17 off)
+    m = _xt_model()
+    L = m.whitener
+    J, _, res = m.jacobians(_PLAN_POSE)
+    same = m.evaluate(_PLAN_POSE, check_range=False, windows=res.windows)
+    np.testing.assert_allclose(same.z, res.z, rtol=0, atol=1e-12 * np.abs(res.z).max())
+    h = 1e-4
+    e = np.zeros(6)
+    e[4] = h
+    steps = np.concatenate([_PLAN_POSE + e, _PLAN_POSE - e])
+    frozen = m.evaluate(steps, check_range=False, windows=np.concatenate([res.windows, res.windows])).z
+    free = m.evaluate(steps, check_range=False)
+    col = L @ J[0, :, 4]
+    err_frozen = np.linalg.norm(L @ (frozen[0] - frozen[1]) / (2 * h) - col) / np.linalg.norm(col)
+    err_free = np.linalg.norm(L @ (free.z[0] - free.z[1]) / (2 * h) - col) / np.linalg.norm(col)
+    assert not np.array_equal(free.windows, np.concatenate([res.windows, res.windows]))  # windows did move
+    assert err_frozen < 3e-4 and err_free > 100 * err_frozen, (err_frozen, err_free)
+
+
+def test_pose_estimate_on_the_cross_talk_model_is_exact_without_noise():
+    # the LM iterates on the own centroid's Jacobians and finishes on the exact ones: noise-free data give the pose
+    from lensforge.calibration.pose_estimation import estimate_poses_batch
+
+    m = _xt_model()
+    z = m.evaluate(_PLAN_POSE, check_range=False).z
+    start = _PLAN_POSE + np.array([[0.05, -0.04, 0.1, 2e-3, -1.5e-3, 4e-3]])
+    est = estimate_poses_batch(m, z, start)
+    assert est.converged[0] and est.status[0] in ("converged", "flat")
+    sig = np.sqrt(np.diag(est.cov[0]))
+    assert np.all(np.abs(est.poses[0] - _PLAN_POSE[0]) < 1e-4 * sig), (est.poses[0] - _PLAN_POSE[0]) / sig

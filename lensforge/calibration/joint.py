@@ -77,6 +77,8 @@ _THETA_TRUST = 3.0
 # a step shorter than this (1-sigma units) keeps the Jacobians fresh for the covariance
 _FRESH_STEP = 0.3
 _MIN_RADIUS = 1e-12  # no descent within this trust radius (1-sigma units): a minimum, to rounding
+# a cross-talk bench: times the fit goes on with the windows its minimum's spots put elsewhere (``JointProblem.windows``)
+_WINDOW_PASSES = 4
 
 
 def pose_chain(A, X, Z, a, T_SO_nominal):
@@ -215,11 +217,29 @@ class JointProblem:
         self._model = None
         self.Li = None
         self.n_traced = 0
+        # the cross-talk model's centroid windows (n, lenslets, 2), frozen at a linearisation point (None: placed
+        # on the spots at each evaluation): whole-pixel placement makes h jump, ~3 whitened units where a spot
+        # crosses a half pixel, and a fit across such jumps stalls (seen: a physical session cycling at chi2 398)
+        self.windows = None
 
     def drop(self, keep) -> None:
         """Keep only the poses ``keep`` (n,) of the problem."""
         self.z, self.A = self.z[keep], self.A[keep]
         self.n = int(np.sum(keep))
+        if self.windows is not None:
+            self.windows = self.windows[keep]
+
+    def refreeze(self, theta, x, uv) -> bool:
+        """On a cross-talk bench, freeze the centroid windows where the spots of the state put them;
+        True if that changed them (the residuals then change too)."""
+        model = self.model(theta)
+        if not model.crosstalk:
+            return False
+        w = model.evaluate(x, uv0=uv, check_range=False).windows
+        self.n_traced += self.n
+        changed = self.windows is None or not np.array_equal(w, self.windows)
+        self.windows = w
+        return changed
 
     def gain(self, theta) -> float:
         """The sensor gain g of the state (1 without the gain parameter)."""
@@ -240,7 +260,7 @@ class JointProblem:
     def residuals(self, X, Z, theta, a, uv0=None):
         """(r_z (n, m) whitened, lit (n,), B, x, uv, z_model) at the state."""
         B, x = pose_chain(self.A, X, Z, a, self.Tn)
-        res = self.model(theta).evaluate(x, uv0=uv0, check_range=False)
+        res = self.model(theta).evaluate(x, uv0=uv0, check_range=False, windows=self.windows)
         self.n_traced += self.n
         zm = self.gain(theta) * res.z
         r = (zm - self.z) @ self.Li.T
@@ -252,7 +272,7 @@ class JointProblem:
 
     def pose_jacobian(self, theta, x, uv):
         """Whitened dh/dx (n, m, 6): the optics' exact Jacobian, rays warm-started from uv."""
-        J, _, _ = jacobian(self.model(theta), x, uv=uv)
+        J, _, _ = self.model(theta).jacobians(x, uv0=uv, windows=self.windows)
         self.n_traced += JACOBIAN_EVALS * self.n
         return self.gain(theta) * np.einsum("ij,njp->nip", self.Li, J)
 
@@ -262,7 +282,7 @@ class JointProblem:
         or (exact=False) the iteration Jacobians without the change of det J (~1e-3 off, half
         the cost)."""
         lt = self.param.tangents(np.asarray(theta, float)[:self.k_lens], self.bench.laser.wavelength_nm)
-        J, Jt, res = self.model(theta).jacobians(x, uv0=uv, lens_tangents=lt, exact=exact)
+        J, Jt, res = self.model(theta).jacobians(x, uv0=uv, lens_tangents=lt, exact=exact, windows=self.windows)
         self.n_traced += JACOBIAN_EVALS * self.n
         g = self.gain(theta)
         S, Jt = g * np.einsum("ij,njp->nip", self.Li, J), g * np.einsum("ij,njp->nip", self.Li, Jt)
@@ -399,6 +419,32 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     else:
         S, Jt = pb.jacobians(theta, x, uv, exact=False)
     fresh = False
+    window_passes = 0
+
+    def refrozen() -> bool:
+        # the windows where the state's spots put them; if that moved any, the residuals with those
+        nonlocal r, lit, B, x, uv, zm, cost
+        if not pb.refreeze(theta, x, uv):
+            return False
+        r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a, uv0=uv)
+        cost = pb.cost(r, a, theta)
+        return True
+
+    def exact_jacobians():
+        # a cross-talk bench's windows are frozen at the first exact linearisation (the same residuals there)
+        if pb.windows is None:
+            refrozen()
+        return pb.jacobians(theta, x, uv)
+
+    def moved_windows() -> bool:
+        # at a minimum with frozen windows: do the estimate's spots put them elsewhere? Then the fit goes on
+        # with those, at most _WINDOW_PASSES times (a spot on a half pixel may flip back and forth)
+        nonlocal window_passes
+        if pb.windows is None or window_passes >= _WINDOW_PASSES:
+            return False
+        window_passes += 1
+        return refrozen()
+
     dof = n * pb.m - 12 - (0 if theta_prior else k)
     radius, lam = None, 0.0  # trust radius, conditional 1-sigma units (None: the next Gauss-Newton step's length)
     converged = False
@@ -417,12 +463,12 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         # data: whitened RMS ~3e-8), where the decrement fits rounding and never shrinks
         scale = max(cost / dof, _NUMERIC_FLOOR)
         if dec < tol ** 2 * scale:
-            if fresh:  # at the minimum, by the covariance's own Jacobians
+            if fresh and not moved_windows():  # at the minimum, by the covariance's own Jacobians
                 converged = True
                 break
             # the iteration Jacobians' fixed point is off the minimum by (J^T J)^-1 dJ^T r
             # when the residuals r are not zero: finish with fresh ones
-            (S, Jt), fresh = pb.jacobians(theta, x, uv), True
+            (S, Jt), fresh = exact_jacobians(), True
             prev_dec, radius = np.inf, None
             continue
         accepted = False
@@ -479,8 +525,8 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             if radius <= _MIN_RADIUS or dropped:  # dropped: the normal equations are the larger problem's
                 break
         if not accepted:
-            if not fresh:  # the iteration Jacobians limit the descent: relinearise here and go on
-                (S, Jt), fresh = pb.jacobians(theta, x, uv), True
+            if not fresh or moved_windows():  # the iteration Jacobians limit the descent: relinearise here and go on
+                (S, Jt), fresh = exact_jacobians(), True
                 prev_dec, radius = np.inf, None
                 continue
             converged = True  # no descent left with exact Jacobians: a minimum (to the residuals' accuracy)
@@ -489,12 +535,16 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
         # (dh/dtheta changes by ~1 % per prior sigma of theta, dh/dx far less)
         fresh = fresh and dec < _FRESH_STEP ** 2 * scale
         if not fresh and dec > refresh_ratio ** 2 * prev_dec:  # slow contraction: the Jacobians are stale
-            (S, Jt), fresh = pb.jacobians(theta, x, uv, exact=False), False
+            # on a cross-talk bench the iteration Jacobians leave out the cross-talk's derivative: fresh ones
+            # there at the same point would repeat the same stalled steps (seen: a physical session cycling at
+            # chi2 398 until max_iter), so the refresh is exact
+            xt = pb.model(theta).crosstalk
+            (S, Jt), fresh = (exact_jacobians(), True) if xt else (pb.jacobians(theta, x, uv, exact=False), False)
             prev_dec, radius = np.inf, None  # a new linearisation starts with its Gauss-Newton step
         else:
             prev_dec = dec
     if not fresh:  # max_iter reached: the covariance needs Jacobians at the estimate
-        (S, Jt), fresh = pb.jacobians(theta, x, uv), True
+        (S, Jt), fresh = exact_jacobians(), True
     # covariance at the estimate, fresh Jacobians
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)

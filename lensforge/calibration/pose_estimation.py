@@ -17,8 +17,9 @@ observable DOF (the paper Zernike lens's rz, 1-sigma ~ 11 deg at nominal) from j
 out of the bench's range on the first Gauss-Newton step; Marquardt's damping (lambda diag(J^T J)) does not, since it damps
 a weak direction least (on 30 noisy paper-Zernike estimates it converged on 7, the
 trust region on 26; ``benchmarks/bench_pose_convergence.py``). The Jacobian is
-``optics.sensitivity.jacobian`` (exact: the rays' derivatives carried through the
-trace), warm-started from the aimed rays. The reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
+``ForwardModel.jacobians`` (exact: the rays' derivatives carried through the
+trace), warm-started from the aimed rays; on a cross-talk bench the iterations take the
+own centroid's (exact=False) and a pose that stops on them goes on with exact ones. The reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
 noise levels of the bench the problem is locally linear, so this is the Cramer-Rao
 bound evaluated at the estimate, and chi2 = r^T r follows a chi-square law with
 m - 6 degrees of freedom.
@@ -216,12 +217,26 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     lim = bench.pose_limits
     first = True
     it = 0
+    # on a cross-talk bench the iterations take the own centroid's Jacobians (``ForwardModel.jacobians``,
+    # exact=False: ~9x cheaper there); a pose that stops on them goes on from there with exact ones, so the
+    # minimum and the covariance are the exact model's
+    exact = np.full(P, not model.crosstalk)
+    if _start is not None:
+        exact[:] = True
+
+    def linearise(idx):
+        nonlocal n_evals
+        for e in (True, False):
+            sel = idx[exact[idx] == e]
+            if sel.size:
+                J[sel] = _whiten_jac(L, model.jacobians(x[sel], uv0=uv[sel], exact=e)[0]) * D
+                n_evals += JACOBIAN_EVALS * sel.size
+        need_J[idx] = False
+
     for it in range(1, max_iter + 1):
         idx = np.flatnonzero(active & need_J)
         if idx.size:
-            J[idx] = _whiten_jac(L, jacobian(model, x[idx], uv=uv[idx])[0]) * D
-            n_evals += JACOBIAN_EVALS * idx.size
-            need_J[idx] = False
+            linearise(idx)
         if first:
             # observability at x0 (the rule of optics.sensitivity): numerically null
             # directions are pinned at x0; weak ones are estimated and flagged
@@ -275,9 +290,14 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
         need_J[ai] = True
         # a rejected step leaves the point, hence the Jacobian, unchanged: reused exactly
         done = ai[small_step[acc] | small_cost[acc]]
+        stuck = a[~acc & (tiny | (delta[a] <= 1e-12 * (1.0 + u_norm)))]
+        relin = np.concatenate([done, stuck])
+        relin = relin[~exact[relin]]  # stopped on iteration Jacobians: on with exact ones
+        exact[relin], need_J[relin] = True, True
+        delta[relin] = np.minimum(np.maximum(delta[relin], trust_radius), cap)  # a new linearisation's region
+        done, stuck = done[exact[done]], stuck[exact[stuck]]
         status[done] = "converged"
         active[done] = False
-        stuck = a[~acc & (tiny | (delta[a] <= 1e-12 * (1.0 + u_norm)))]
         status[stuck] = "flat"  # no descent direction left: a (possibly flat) minimum
         active[stuck] = False
         # an estimate far outside the bench's pose range is abandoned (reported out of range)
@@ -285,6 +305,10 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
                  | (np.linalg.norm(x[ai, 3:], axis=1) > 2 * lim.rotation_rad)]
         status[far] = "far"
         active[far] = False
+    late = np.flatnonzero(valid & ~exact)  # max_iter on iteration Jacobians: the covariance's exact one here
+    if late.size:
+        exact[late] = True
+        linearise(late)
     # covariance from the Jacobian at the last linearisation point, on the estimated directions
     cov = np.full((P, 6, 6), np.nan)
     for p in np.flatnonzero(valid):

@@ -178,7 +178,7 @@ _XY_TOL = 1e-5
 # the separable form (``_separable_centroid``): its cross-term series' bound and its most terms (beyond: the full block),
 # lenslets per pass
 _SEP_TOL = 1e-7
-_SEP_MAX_RANK = 12
+_SEP_MAX_RANK = 20
 _SEP_CHUNK = 128
 
 
@@ -194,7 +194,8 @@ def _xy_ranks(a_abs: np.ndarray) -> np.ndarray:
 
 
 def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_log_i: np.ndarray, sensor: Sensor,
-                    wavelength_nm: float, iterations: int = 1, sub: int = 2) -> np.ndarray:
+                    wavelength_nm: float, iterations: int = 1, sub: int = 2, windows: np.ndarray | None = None,
+                    return_windows: bool = False):
     """Centroid minus spot position (..., n, 2) mm of a pixel window that sees the own lenslet's and
     its neighbours' coherent Fraunhofer spots.
 
@@ -212,14 +213,20 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     corners, ~100 mrad slopes) from 8.9-12.6 to 5.5-8.5 sigma, and left the paper lenses' at 1.6-6.7
     sigma (1.7-6.7 without), moving single modes by up to 4 sigma (the extended polynomial lens's Z4).
     Cost on the co-designed lenslets: 8.2 ms each (3.8 ms without K_xy). Lenslets whose cross term converges over
-    the whole block within ``_SEP_MAX_RANK`` terms (``_block_ranks``: |a| < ~0.16; the paper's polynomial and Zernike
-    lenses, a <= 0.016) take its separable form (``_separable_centroid``, the same field to ~1e-6 of the shift, 7x
-    fewer aperture moments): the paper Zernike lens's pose 98 ms (264 ms before), polynomial 65 ms. The window
+    the whole block within ``_SEP_MAX_RANK`` terms (``_block_ranks``: |a| < ~0.7; the paper's polynomial and
+    Zernike lenses, a <= 0.016 at nominal, 0.17 at 5 deg tilts) take its separable form (``_separable_centroid``,
+    the same field to ~1e-6 of the shift, 7x fewer aperture moments): the paper Zernike lens's pose 98 ms (264 ms
+    before), polynomial 65 ms. The window
     (``centroid_window_px``) is placed on whole pixels on the spot (pixel edges at ``camera_offset_px``
     + k pixels), re-centred on its centroid ``iterations`` times (recomputed only for the lenslets whose
     window moved); ``centroid_threshold`` x the window's peak is cut. Runs ``_XT_CHUNK`` lenslets at a
     time. Written in real arithmetic (cos, sin, the aperture moments' jets) so that a complex step
     through it gives its exact derivative.
+
+    windows: (..., n, 2) first pixels of frozen windows (none placed, none re-centred; e.g. those a fit
+    linearised at: whole-pixel placement makes the shift jump where a spot crosses a half pixel, ~3 whitened
+    units of a pose's Zernike residual, once per ~25 sigma of a pose's rotation on the paper polynomial lens);
+    return_windows: also return the windows used (same shape).
     """
     lead = np.broadcast_shapes(spot.shape[:-1], K.shape[:-2], grad_log_i.shape[:-1])
     dt = np.result_type(spot, K, grad_log_i)
@@ -227,6 +234,8 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     Kf = np.broadcast_to(K, lead + (2, 2)).reshape(-1, 2, 2)
     gf = np.broadcast_to(grad_log_i, lead + (2,)).reshape(-1, 2)
     out = np.empty(sp.shape, dtype=dt)
+    st_all = np.empty(sp.shape)
+    frozen = None if windows is None else np.broadcast_to(windows, lead + (2,)).reshape(-1, 2)
     # the separable form where the block's cross term converges within _SEP_MAX_RANK terms, the full block elsewhere
     a = 0.5 * (2 * np.pi / (wavelength_nm * 1e-6)) * sensor.pitch_mm ** 2 * np.abs(np.real(Kf[:, 0, 1] + Kf[:, 1, 0]))
     ranks = _block_ranks(a)
@@ -236,16 +245,21 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
                                   (np.nonzero(ranks > _SEP_MAX_RANK)[0], _window_centroid, _XT_CHUNK)):
         for i in range(0, len(rows), chunk):
             c = rows[i:i + chunk]
-            out[c] = _tracked_window_shift(sp[c], _local_block(Kf[c], gf[c], sensor, wavelength_nm), sensor,
-                                           wavelength_nm, iterations, sub, centroid)
-    return out.reshape(lead + (2,))
+            out[c], st_all[c] = _tracked_window_shift(sp[c], _local_block(Kf[c], gf[c], sensor, wavelength_nm),
+                                                      sensor, wavelength_nm, iterations, sub, centroid,
+                                                      None if frozen is None else frozen[c])
+    out = out.reshape(lead + (2,))
+    return (out, st_all.reshape(lead + (2,))) if return_windows else out
 
 
 def _tracked_window_shift(spot: np.ndarray, block: dict, sensor: Sensor, wavelength_nm: float, iterations: int,
-                          sub: int, centroid) -> np.ndarray:
-    """Centroid minus spot (m, 2) mm of m lenslets whose blocks are ``block`` (``_local_block``): the whole-pixel
-    window on the spot, re-centred on its centroid ``iterations`` times (recomputed only for the lenslets whose
-    window moved); centroid: ``_window_centroid`` or ``_separable_centroid``."""
+                          sub: int, centroid, st: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(centroid minus spot (m, 2) mm, window first pixels (m, 2)) of m lenslets whose blocks are ``block``
+    (``_local_block``): the whole-pixel window on the spot, re-centred on its centroid ``iterations`` times
+    (recomputed only for the lenslets whose window moved), or the frozen windows st; centroid:
+    ``_window_centroid`` or ``_separable_centroid``."""
+    if st is not None:
+        return centroid(spot, block, st, sensor, wavelength_nm, sub) - spot, st
     pix, W = sensor.pixel_mm, int(sensor.centroid_window_px)
     edge0 = float(sensor.camera_offset_px) * pix
     st = _window_start(spot, edge0, pix, W)
@@ -258,7 +272,7 @@ def _tracked_window_shift(spot: np.ndarray, block: dict, sensor: Sensor, wavelen
         pos[moved] = centroid(spot[moved], {key: v[moved] for key, v in block.items()}, st_new[moved], sensor,
                               wavelength_nm, sub)
         st = st_new
-    return pos - spot
+    return pos - spot, st
 
 
 def _window_start(pos: np.ndarray, edge0: float, pix: float, W: int) -> np.ndarray:
@@ -350,10 +364,12 @@ def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sens
 
 
 def _block_ranks(a_abs: np.ndarray) -> np.ndarray:
-    """Terms r = 0 .. R of the block's cross-term series exp(i a T_x T_y) = sum_r (i a T_x T_y)^r / r! per lenslet,
-    |T_x T_y| <= (_XT_RING + 1/2)^2 over the block: its bound (|a| (_XT_RING + 1/2)^2)^(R+1) / (R+1)! below
-    ``_SEP_TOL``; _SEP_MAX_RANK + 1 where that takes more terms (the lenslet goes to the full block)."""
-    q = np.asarray(a_abs, dtype=float) * (_XT_RING + 0.5) ** 2
+    """Terms r = 0 .. R of the block's cross-term series exp(i a T_x T_y) = sum_r (i a T_x T_y)^r / r! per lenslet:
+    (|a| T^2)^(R+1) / (R+1)! below ``_SEP_TOL`` with T^2 = (_XT_RING - 1/2)^2, the second ring's corner (the third
+    ring's light in the window is ~1e-2 of the own spot's: against the full block, 32 lenslets at a = 0.06, 0.17,
+    0.35, the shifts reach the full block's own 1e-7 of their size at R = 4-6, 8, 14; this bound gives 6, 9, 14);
+    _SEP_MAX_RANK + 1 where that takes more terms (the lenslet goes to the full block)."""
+    q = np.asarray(a_abs, dtype=float) * (_XT_RING - 0.5) ** 2
     R = np.zeros(q.shape, dtype=int)
     term = np.ones(q.shape)
     for r in range(1, _SEP_MAX_RANK + 2):
@@ -448,9 +464,11 @@ def local_field(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np
 
 
 def crosstalk_slopes(s: np.ndarray, sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray,
-                     centres: np.ndarray, sensor: Sensor, wavelength_nm: float) -> np.ndarray:
+                     centres: np.ndarray, sensor: Sensor, wavelength_nm: float, windows: np.ndarray | None = None,
+                     return_windows: bool = False):
     """Centroid slopes s (..., n, 2) with the neighbours' cross-talk, the whole-pixel window placement
     and the noise cut, against the factory reference: s (1 + p^2 / 6 f^2) + (shift - reference shift) / f.
+    windows, return_windows: frozen windows, and the windows used (``crosstalk_shift``).
 
     The gain is the ideal thin lenslet's own mapping of a tilt onto the camera beyond its chief ray:
     the rays across a fully lit p x p aperture land, on average, at f tan(theta) (1 + 2 <u^2> / f^2),
@@ -460,8 +478,9 @@ def crosstalk_slopes(s: np.ndarray, sq: np.ndarray, wi: np.ndarray, offsets: np.
     K, g = local_field(sq, wi, offsets, weights, sensor.pitch_mm)
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     spot = centres + f * s
-    d = crosstalk_shift(spot, centres, K, g, sensor, wavelength_nm) - reference_shift(sensor, wavelength_nm, centres)
-    return s * (1.0 + p * p / (6.0 * f * f)) + d / f
+    d, st = crosstalk_shift(spot, centres, K, g, sensor, wavelength_nm, windows=windows, return_windows=True)
+    out = s * (1.0 + p * p / (6.0 * f * f)) + (d - reference_shift(sensor, wavelength_nm, centres)) / f
+    return (out, st) if return_windows else out
 
 
 # the cross-talk kernel's inputs per lenslet: spot (x, y), K (xx, xy, yx, yy), grad ln I (x, y)
@@ -470,9 +489,10 @@ LOCAL_INPUTS = 8
 
 def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray, dwi: np.ndarray, offsets: np.ndarray,
                                 weights: np.ndarray, gains: tuple[float, float], centres: np.ndarray, sensor: Sensor,
-                                wavelength_nm: float) -> np.ndarray:
+                                wavelength_nm: float, windows: np.ndarray | None = None) -> np.ndarray:
     """Derivatives (..., n, 2, d) of ``crosstalk_slopes`` (after ``centroid_slopes``) along d directions
-    of the quadrature slopes dsq (..., n, q, 2, d) and weights dwi (..., n, q, d), exact.
+    of the quadrature slopes dsq (..., n, q, 2, d) and weights dwi (..., n, q, d), exact (windows: frozen
+    ones, ``crosstalk_shift``; the derivative is the same, the windows' placement is skipped).
 
     The kernel sees a lenslet only through ``LOCAL_INPUTS`` numbers (its spot, slope gradient K and
     gradient of ln I), so its derivatives are taken by a complex step along those 8 inputs, not along
@@ -494,5 +514,5 @@ def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray,
         e = np.zeros(LOCAL_INPUTS)
         e[j] = h
         jac[..., j] = crosstalk_shift(spot + 1j * e[:2], centres, K + 1j * e[2:6].reshape(2, 2), g + 1j * e[6:],
-                                      sensor, wavelength_nm).imag / h
+                                      sensor, wavelength_nm, windows=windows).imag / h
     return ds * (1.0 + p * p / (6.0 * f * f)) + np.einsum("...kl,...ld->...kd", jac, d_local) / f

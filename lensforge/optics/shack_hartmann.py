@@ -149,7 +149,9 @@ class ZernikeResult:
     valid: (P,) all lenslets traced, lit and assignable; uv: (P, n*q, 2) aimed beam
     coordinates of the q quadrature points per lenslet (warm start for nearby poses);
     rays_traced: total rays traced; range_use: (P, n) fraction of the spot-assignment
-    limit used (<= 1: in the sensor's range); spot_model: sensor.spot_assignment.
+    limit used (<= 1: in the sensor's range); spot_model: sensor.spot_assignment; windows:
+    (P, n, 2) first pixels of the centroid windows on a cross-talk bench (None otherwise), to
+    freeze them (``ForwardModel.evaluate``).
     """
 
     z: np.ndarray
@@ -162,6 +164,7 @@ class ZernikeResult:
     threshold: float
     range_use: np.ndarray | None = None
     spot_model: str = "none"
+    windows: np.ndarray | None = None
 
     @property
     def in_range(self) -> np.ndarray:
@@ -255,9 +258,12 @@ class ForwardModel:
         """L^-1 with R = L L^T (1/um): whitened residuals w = L^-1 (z - h(x)) have unit covariance."""
         return np.linalg.inv(np.linalg.cholesky(self.noise_cov))
 
-    def evaluate(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = True) -> ZernikeResult:
-        """Noise-free Zernike coefficients for poses (P, 6); never raises on bad rays."""
-        return self._zernike(self._aim(poses, uv0, check_range))
+    def evaluate(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = True,
+                 windows: np.ndarray | None = None) -> ZernikeResult:
+        """Noise-free Zernike coefficients for poses (P, 6); never raises on bad rays. windows: the
+        cross-talk model's centroid windows (P, n, 2) frozen (a previous result's ``windows``):
+        its whole-pixel placement then does not jump within a fit's linearisation."""
+        return self._zernike(self._aim(poses, uv0, check_range), windows)
 
     def _aim(self, poses, uv0, check_range: bool) -> dict:
         """The aimed quadrature rays at poses: uv (P, n*q, 2), slopes sq (P, n, q, 2),
@@ -284,55 +290,66 @@ class ForwardModel:
         return np.where(a["st"] == OK, a["irr"].reshape(P, n_l, q), 0.0) * self.quad_weights
 
     @property
+    def crosstalk(self) -> bool:
+        """The centroids see the neighbours' cross-talk (``sensor.crosstalk``, a pixel window): an
+        exact Jacobian then costs ~9 cross-talk kernel passes, an iteration one (``jacobians``,
+        exact=False) none."""
+        return not self._own_centroid
+
+    @property
     def _own_centroid(self) -> bool:
         """Each lenslet's centroid depends on its own light only (no cross-talk model; window 0:
         the complete spot)."""
         sensor = self.bench.sensor
         return sensor.crosstalk == "none" or sensor.centroid_window_px == 0
 
-    def _centroids(self, sq, wi) -> np.ndarray:
+    def _centroids(self, sq, wi, windows=None, return_windows: bool = False):
         s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
         if self._own_centroid:
-            return s
+            return (s, None) if return_windows else s
         sensor = self.bench.sensor
         return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
-                                self.bench.laser.wavelength_nm)
+                                self.bench.laser.wavelength_nm, windows=windows, return_windows=return_windows)
 
-    def _centroid_derivatives(self, sq, wi, dsq, dwi) -> np.ndarray:
+    def _centroid_derivatives(self, sq, wi, dsq, dwi, exact: bool = True, windows=None) -> np.ndarray:
         """(P, d, n, 2): the centroids' derivatives along d directions of the quadrature slopes
         dsq (P, n, q, 2, d) and weights dwi (P, n, q, d): in closed form for the lenslet's own
         centroid; with the neighbours' cross-talk by a complex step through ``_centroids``
         (analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly), or, for more than
         ``LOCAL_INPUTS`` directions, along the kernel's 8 inputs per lenslet, chained
-        (``crosstalk_slope_derivatives``)."""
-        if self._own_centroid:
+        (``crosstalk_slope_derivatives``). exact=False: the own centroid's, cross-talk or not
+        (an iteration Jacobian's: the cross-talk's part of the derivative, a few percent of the
+        information, costs 8 kernel passes)."""
+        if self._own_centroid or not exact:
             ds = centroid_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain)
             return np.moveaxis(ds, -1, 1)
         if dsq.shape[-1] > LOCAL_INPUTS:  # more directions than the kernel has inputs: chain through them
             ds = crosstalk_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain,
-                                             self.pupil.centres, self.bench.sensor, self.bench.laser.wavelength_nm)
+                                             self.pupil.centres, self.bench.sensor, self.bench.laser.wavelength_nm,
+                                             windows=windows)
             return np.moveaxis(ds, -1, 1)
         eps = 1e-30
         sq_c = sq[:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, d, n, q, 2)
         wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, d, n, q)
-        return self._centroids(sq_c, wi_c).imag / eps
+        return self._centroids(sq_c, wi_c, None if windows is None else windows[:, None]).imag / eps
 
-    def _zernike(self, a: dict) -> ZernikeResult:
+    def _zernike(self, a: dict, windows=None) -> ZernikeResult:
         sensor = self.bench.sensor
         wi = self._weights(a)
         irr_mean = wi.sum(axis=2)
-        slopes = self._centroids(a["sq"], wi)
+        slopes, windows = self._centroids(a["sq"], wi, windows, return_windows=True)
         status = a["st"].max(axis=2)  # OK (0) only if every quadrature ray is OK
         slopes = np.where((status == OK)[..., None] & (irr_mean > 0)[..., None], slopes, 0.0)
         thr = sensor.irradiance_threshold
         use = range_use(sensor, self.bench.laser.wavelength_nm, self.pupil.centres, self.pupil.neighbours, slopes)
         valid = np.all(status == OK, axis=1) & np.all(irr_mean >= thr, axis=1) & np.all(use <= 1.0, axis=1)
         z = self.pupil.fit(slopes)
-        return ZernikeResult(z, slopes, irr_mean, status, valid, a["uv"], a["n"], thr, use, sensor.spot_assignment)
+        return ZernikeResult(z, slopes, irr_mean, status, valid, a["uv"], a["n"], thr, use, sensor.spot_assignment,
+                             windows)
 
     def jacobians(self, poses: ArrayLike, uv0: ArrayLike | None = None, check_range: bool = False,
-                  lens_tangents: LensTangents | None = None,
-                  exact: bool = True) -> tuple[np.ndarray, np.ndarray | None, ZernikeResult]:
+                  lens_tangents: LensTangents | None = None, exact: bool = True,
+                  windows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, ZernikeResult]:
         """Exact dz/dx (P, m, 6) at poses (P, 6) (um per mm, um per rad), dz along each of the
         l lens tangents (P, m, l) (None without them) and the model at the poses.
 
@@ -346,10 +363,13 @@ class ForwardModel:
         copies of each aimed ray give every direction (``aimed_tangents``). The centroid's
         derivative is exact (``_centroid_derivatives``); the Zernike fit is linear. uv0: the
         rays aimed at x by a previous evaluation (used as they are when every one still lands
-        within ``AIM_TOL``, else the start of a new aim). exact=False
+        within ``AIM_TOL``, else the start of a new aim); windows: frozen centroid windows
+        (``evaluate``). exact=False
         leaves out the change of det J (the irradiance weights then move with the beam profile
-        only) and traces the aimed rays alone, ~2.5x cheaper: an iteration Jacobian (a few
-        1e-3 off, ``aimed_tangents``), never a covariance's.
+        only), traces the aimed rays alone, ~2.5x cheaper, and on a cross-talk bench takes the
+        own centroid's derivatives (``_centroid_derivatives``; ~9x cheaper there): an iteration
+        Jacobian (a few 1e-3 off, ``aimed_tangents``; a few 1e-2 with cross-talk), never a
+        covariance's.
         """
         x = np.atleast_2d(np.asarray(poses, dtype=float))
         if check_range:
@@ -385,7 +405,7 @@ class ForwardModel:
         if a["irr"] is None:
             with np.errstate(divide="ignore", invalid="ignore"):
                 a["irr"] = self._beam(uv) / np.abs(j00 * j11 - j01 * j10)
-        res = self._zernike(a)
+        res = self._zernike(a, windows)
         irr = np.where(np.isfinite(a["irr"]), a["irr"], 0.0)  # a failed ray has no weight (nor derivative)
         dsq, dirr = aimed_tangents(t, P, uv, irr, self.bench.laser.beam_diameter_mm, _UV_STEP)
         nq = dirr.shape[-1]  # directions q: pose, then lens
@@ -394,7 +414,7 @@ class ForwardModel:
         wi = self._weights(a)
         dwi = np.where(good[..., None], dirr.reshape(P, n_l, q, nq), 0.0) * self.quad_weights[:, None]
         dsq = np.where(good[..., None, None], dsq.reshape(P, n_l, q, 2, nq), 0.0)
-        ds = self._centroid_derivatives(a["sq"], wi, dsq, dwi)  # (P, nq, n, 2)
+        ds = self._centroid_derivatives(a["sq"], wi, dsq, dwi, exact, res.windows)  # (P, nq, n, 2): the value's windows
         lit = (res.status == OK) & (res.irradiance > 0)
         ds = np.where(lit[:, None, :, None], ds, 0.0)
         Jall = np.swapaxes(self.pupil.fit(ds), 1, 2)  # (P, m, nq)
