@@ -251,6 +251,13 @@ def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical
               f"{np.min(r['chi2_dof']):.2f}-{np.max(r['chi2_dof']):.2f} | p<0.05 {np.mean(np.array(r['p_values']) < 0.05):.2f}"
               f" | Z err {np.median(r['z_translation_error_mm']) * 1e3:.1f} um, {np.median(r['z_rotation_error_deg']) * 17.453:.2f} mrad"
               f" | inside 3 sigma {r['inside_3sigma']:.2f} | failed {len(r['failed'])}", flush=True)
+        est = [(e["lenslet_focal_mm"], e["lenslet_focal_std_mm"], t) for e, t in
+               zip(r.get("sensor", []), r.get("lenslet_focal_true_mm", [])) if e]
+        if est:  # the joint fit's focal-length estimates against the simulated sensor's
+            f_est, f_std, f_true = (np.array(v) for v in zip(*est))
+            print(f"{'':9s} lenslet focal length (true {f_true[0]:.4f} mm): estimates {np.round(f_est, 4).tolist()} mm, "
+                  f"sigma {np.round(f_std, 4).tolist()}, error/sigma {np.round((f_est - f_true) / f_std, 2).tolist()}",
+                  flush=True)
     return out
 
 

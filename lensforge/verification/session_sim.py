@@ -286,7 +286,9 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
     Returns {"seed", "failed": None or the error, "nees": e^T cov_Z^-1 e (right
     perturbation, 6 DOF), "inside_3sigma_each_axis": all six parent-frame components
     within 3 reported sigma, "chi2_dof", "p_value", "z_translation_error_mm",
-    "z_rotation_error_deg", "start": the joint fit's start (or None)}."""
+    "z_rotation_error_deg", "start": the joint fit's start (or None), "sensor": the joint fit's sensor
+    estimates (``session_joint.sensor_summary``, None without the gain), "lenslet_focal_true_mm": the simulated
+    sensor's}."""
     s = simulate_session(lens, tolerances=tolerances, seed=seed, bench=bench, session_plan=session_plan,
                          sensor=sensor)
     with tempfile.TemporaryDirectory() as tmp:
@@ -305,7 +307,9 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
     return {"seed": int(seed), "failed": None, "nees": nees(s.Z, r.Z, r.handeye.cov_Z),
             "inside_3sigma_each_axis": bool(np.all(np.abs(err_parent) <= 3 * sig)), "chi2_dof": float(r.chi2_dof),
             "p_value": float(r.p_value), "z_translation_error_mm": float(np.linalg.norm(e[:3])),
-            "z_rotation_error_deg": math.degrees(float(np.linalg.norm(e[3:]))), "start": r.extra.get("start")}
+            "z_rotation_error_deg": math.degrees(float(np.linalg.norm(e[3:]))), "start": r.extra.get("start"),
+            # the joint fit's focal-length estimate against the simulated sensor's (the bench's) focal length
+            "sensor": r.extra.get("sensor"), "lenslet_focal_true_mm": float(bench.sensor.lenslet_focal_mm)}
 
 
 def summarise_sessions(outcomes) -> dict:
@@ -319,6 +323,7 @@ def summarise_sessions(outcomes) -> dict:
             "z_translation_error_mm": np.array([o["z_translation_error_mm"] for o in ok]),
             "z_rotation_error_deg": np.array([o["z_rotation_error_deg"] for o in ok]),
             "seeds": np.array([o["seed"] for o in ok], dtype=int),
+            "sensor": [o.get("sensor") for o in ok], "lenslet_focal_true_mm": [o.get("lenslet_focal_true_mm") for o in ok],
             "failed": [o["failed"] for o in outcomes if o["failed"] is not None]}
 
 
