@@ -58,7 +58,7 @@ from scipy.special import chdtrc
 
 from ..errors import CalibrationError
 from ..optics.pose import invert_poses, matrix_to_pose, pose_to_matrix
-from ..optics.sensitivity import JACOBIAN_EVALS, jacobian
+from ..optics.sensitivity import JACOBIAN_EVALS
 from ..optics.shack_hartmann import ForwardModel
 from ..asbuilt.joint_information import chain_jacobians  # the chain's derivatives live below calibration (design uses them)
 from ..asbuilt.lens_params import LensParameterisation
@@ -217,9 +217,9 @@ class JointProblem:
         self._model = None
         self.Li = None
         self.n_traced = 0
-        # the cross-talk model's centroid windows (n, lenslets, 2), frozen at a linearisation point (None: placed
-        # on the spots at each evaluation): whole-pixel placement makes h jump, ~3 whitened units where a spot
-        # crosses a half pixel, and a fit across such jumps stalls (seen: a physical session cycling at chi2 398)
+        # the cross-talk model's centroid windows (n, lenslets, 2), frozen at the first exact linearisation (None:
+        # placed on the spots at each evaluation): whole-pixel placement makes h jump, ~3 whitened units where a
+        # spot crosses a half pixel, and a fit across such jumps stalls (seen: a physical session cycling at chi2 398)
         self.windows = None
 
     def drop(self, keep) -> None:
@@ -228,18 +228,6 @@ class JointProblem:
         self.n = int(np.sum(keep))
         if self.windows is not None:
             self.windows = self.windows[keep]
-
-    def refreeze(self, theta, x, uv) -> bool:
-        """On a cross-talk bench, freeze the centroid windows where the spots of the state put them;
-        True if that changed them (the residuals then change too)."""
-        model = self.model(theta)
-        if not model.crosstalk:
-            return False
-        w = model.evaluate(x, uv0=uv, check_range=False).windows
-        self.n_traced += self.n
-        changed = self.windows is None or not np.array_equal(w, self.windows)
-        self.windows = w
-        return changed
 
     def gain(self, theta) -> float:
         """The sensor gain g of the state (1 without the gain parameter)."""
@@ -257,10 +245,14 @@ class JointProblem:
                 self.Li = self._model.whitener
         return self._model
 
-    def residuals(self, X, Z, theta, a, uv0=None):
-        """(r_z (n, m) whitened, lit (n,), B, x, uv, z_model) at the state."""
+    def residuals(self, X, Z, theta, a, uv0=None, place_windows: bool = False):
+        """(r_z (n, m) whitened, lit (n,), B, x, uv, z_model) at the state; place_windows: the
+        cross-talk model's windows placed on the state's spots, and frozen there."""
         B, x = pose_chain(self.A, X, Z, a, self.Tn)
-        res = self.model(theta).evaluate(x, uv0=uv0, check_range=False, windows=self.windows)
+        res = self.model(theta).evaluate(x, uv0=uv0, check_range=False,
+                                         windows=None if place_windows else self.windows)
+        if place_windows:
+            self.windows = res.windows
         self.n_traced += self.n
         zm = self.gain(theta) * res.z
         r = (zm - self.z) @ self.Li.T
@@ -283,6 +275,8 @@ class JointProblem:
         the cost)."""
         lt = self.param.tangents(np.asarray(theta, float)[:self.k_lens], self.bench.laser.wavelength_nm)
         J, Jt, res = self.model(theta).jacobians(x, uv0=uv, lens_tangents=lt, exact=exact, windows=self.windows)
+        if exact and self.windows is None:  # frozen at the first exact linearisation (the same residuals there)
+            self.windows = res.windows
         self.n_traced += JACOBIAN_EVALS * self.n
         g = self.gain(theta)
         S, Jt = g * np.einsum("ij,njp->nip", self.Li, J), g * np.einsum("ij,njp->nip", self.Li, Jt)
@@ -421,29 +415,17 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     fresh = False
     window_passes = 0
 
-    def refrozen() -> bool:
-        # the windows where the state's spots put them; if that moved any, the residuals with those
-        nonlocal r, lit, B, x, uv, zm, cost
-        if not pb.refreeze(theta, x, uv):
-            return False
-        r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a, uv0=uv)
-        cost = pb.cost(r, a, theta)
-        return True
-
-    def exact_jacobians():
-        # a cross-talk bench's windows are frozen at the first exact linearisation (the same residuals there)
-        if pb.windows is None:
-            refrozen()
-        return pb.jacobians(theta, x, uv)
-
     def moved_windows() -> bool:
         # at a minimum with frozen windows: do the estimate's spots put them elsewhere? Then the fit goes on
-        # with those, at most _WINDOW_PASSES times (a spot on a half pixel may flip back and forth)
-        nonlocal window_passes
+        # with those (and their residuals), at most _WINDOW_PASSES times (a spot on a half pixel may flip back and forth)
+        nonlocal window_passes, r, lit, B, x, uv, zm, cost
         if pb.windows is None or window_passes >= _WINDOW_PASSES:
             return False
         window_passes += 1
-        return refrozen()
+        before = pb.windows
+        r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a, uv0=uv, place_windows=True)
+        cost = pb.cost(r, a, theta)
+        return not np.array_equal(before, pb.windows)
 
     dof = n * pb.m - 12 - (0 if theta_prior else k)
     radius, lam = None, 0.0  # trust radius, conditional 1-sigma units (None: the next Gauss-Newton step's length)
@@ -468,7 +450,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 break
             # the iteration Jacobians' fixed point is off the minimum by (J^T J)^-1 dJ^T r
             # when the residuals r are not zero: finish with fresh ones
-            (S, Jt), fresh = exact_jacobians(), True
+            (S, Jt), fresh = pb.jacobians(theta, x, uv), True
             prev_dec, radius = np.inf, None
             continue
         accepted = False
@@ -526,7 +508,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 break
         if not accepted:
             if not fresh or moved_windows():  # the iteration Jacobians limit the descent: relinearise here and go on
-                (S, Jt), fresh = exact_jacobians(), True
+                (S, Jt), fresh = pb.jacobians(theta, x, uv), True
                 prev_dec, radius = np.inf, None
                 continue
             converged = True  # no descent left with exact Jacobians: a minimum (to the residuals' accuracy)
@@ -539,12 +521,12 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
             # there at the same point would repeat the same stalled steps (seen: a physical session cycling at
             # chi2 398 until max_iter), so the refresh is exact
             xt = pb.model(theta).crosstalk
-            (S, Jt), fresh = (exact_jacobians(), True) if xt else (pb.jacobians(theta, x, uv, exact=False), False)
+            (S, Jt), fresh = pb.jacobians(theta, x, uv, exact=xt), xt
             prev_dec, radius = np.inf, None  # a new linearisation starts with its Gauss-Newton step
         else:
             prev_dec = dec
     if not fresh:  # max_iter reached: the covariance needs Jacobians at the estimate
-        (S, Jt), fresh = exact_jacobians(), True
+        (S, Jt), fresh = pb.jacobians(theta, x, uv), True
     # covariance at the estimate, fresh Jacobians
     info = joint_information(S, B, x, X, Jt, pb.robot_cov, theta_prior)
     cov = _inv(info)

@@ -236,17 +236,18 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     out = np.empty(sp.shape, dtype=dt)
     st_all = np.empty(sp.shape)
     frozen = None if windows is None else np.broadcast_to(windows, lead + (2,)).reshape(-1, 2)
-    # the separable form where the block's cross term converges within _SEP_MAX_RANK terms, the full block elsewhere
-    a = 0.5 * (2 * np.pi / (wavelength_nm * 1e-6)) * sensor.pitch_mm ** 2 * np.abs(np.real(Kf[:, 0, 1] + Kf[:, 1, 0]))
-    ranks = _block_ranks(a)
+    # the separable form where the block's cross term converges within _SEP_MAX_RANK terms (it needs only K and
+    # grad ln I), the full block elsewhere
+    ranks = _block_ranks(np.abs(np.real(_cross_term(Kf, sensor, wavelength_nm))))
     sep = np.nonzero(ranks <= _SEP_MAX_RANK)[0]
     sep = sep[np.argsort(ranks[sep], kind="stable")]  # passes of like ranks
     for rows, centroid, chunk in ((sep, _separable_centroid, _SEP_CHUNK),
                                   (np.nonzero(ranks > _SEP_MAX_RANK)[0], _window_centroid, _XT_CHUNK)):
         for i in range(0, len(rows), chunk):
             c = rows[i:i + chunk]
-            out[c], st_all[c] = _tracked_window_shift(sp[c], _local_block(Kf[c], gf[c], sensor, wavelength_nm),
-                                                      sensor, wavelength_nm, iterations, sub, centroid,
+            block = ({"K": Kf[c], "g": gf[c]} if centroid is _separable_centroid
+                     else _local_block(Kf[c], gf[c], sensor, wavelength_nm))
+            out[c], st_all[c] = _tracked_window_shift(sp[c], block, sensor, wavelength_nm, iterations, sub, centroid,
                                                       None if frozen is None else frozen[c])
     out = out.reshape(lead + (2,))
     return (out, st_all.reshape(lead + (2,))) if return_windows else out
@@ -292,9 +293,13 @@ def _local_block(K: np.ndarray, grad_log_i: np.ndarray, sensor: Sensor, waveleng
     amp = np.exp(0.5 * np.einsum("...i,bi->...b", grad_log_i, pe))
     phase = k * (0.5 * np.einsum("bi,...bi->...b", pe, delta) + (pe**2).sum(axis=1) / (2 * f))
     alpha = 0.5 * k * p * p * np.stack([K[..., 0, 0], K[..., 1, 1]], axis=-1)
-    a_xy = 0.5 * k * p * p * (K[..., 0, 1] + K[..., 1, 0])
     return {"nb_pos": pe + f * delta, "cr": amp * np.cos(phase), "ci": amp * np.sin(phase), "alpha": alpha,
-            "a_xy": a_xy, "K": K, "g": grad_log_i}
+            "a_xy": _cross_term(K, sensor, wavelength_nm)}
+
+
+def _cross_term(K: np.ndarray, sensor: Sensor, wavelength_nm: float) -> np.ndarray:
+    """a = k p^2 (K_xy + K_yx) / 2 (...): the wavefront's cross curvature exp(i a T_x T_y), T in pitches."""
+    return 0.5 * (2 * np.pi / (wavelength_nm * 1e-6)) * sensor.pitch_mm ** 2 * (K[..., 0, 1] + K[..., 1, 0])
 
 
 def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sensor, wavelength_nm: float,
@@ -312,12 +317,7 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     # each sub-aperture's own curvature: the phase k (K_xx X^2 + (K_xy + K_yx) X Y + K_yy Y^2) / 2, X = p t_x;
     # K_xy's factor exp(i a t_x t_y) as sum_r (i a)^r / r! t_x^r t_y^r, terms zero beyond each sub-aperture's
     # own R: the result does not depend on which lenslets share a pass
-    ranks = _xy_ranks(np.abs(np.real(a_xy)))  # (m,)
-    R = int(ranks.max(initial=0))
-    r = np.arange(R + 1)
-    fact = np.cumprod(np.concatenate([[1.0], 1.0 / np.arange(1, R + 1)]))
-    pw = (a_xy[:, None] ** r * fact * (r <= ranks[:, None]))[:, None, :]  # (m, 1, R+1): a^r / r!
-    ir_re, ir_im = np.array([1.0, 0.0, -1.0, 0.0])[r % 4], np.array([0.0, 1.0, 0.0, -1.0])[r % 4]  # i^r
+    R, pw, ir_re, ir_im = _series_weights(a_xy, _xy_ranks(np.abs(np.real(a_xy))))
     xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (m, S, 2) rel. own spot
     arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (m, B, S, 2)
     mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
@@ -361,6 +361,16 @@ def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sens
     cx = np.einsum("...x,...x->...", inten.sum(axis=-2), pc[..., 0]) / tot
     cy = np.einsum("...y,...y->...", inten.sum(axis=-1), pc[..., 1]) / tot
     return np.stack([cx, cy], axis=-1)
+
+
+def _series_weights(a: np.ndarray, ranks: np.ndarray):
+    """(R, a^r / r! (m, 1, R+1), Re i^r, Im i^r (R+1,)) of the series exp(i a u) = sum_r (i a)^r / r! u^r, its
+    terms zero beyond each lenslet's own rank: a lenslet's result does not depend on which lenslets share a pass."""
+    R = int(ranks.max(initial=0))
+    r = np.arange(R + 1)
+    fact = np.cumprod(np.concatenate([[1.0], 1.0 / np.arange(1, R + 1)]))
+    pw = (a[:, None] ** r * fact * (r <= ranks[:, None]))[:, None, :]
+    return R, pw, np.array([1.0, 0.0, -1.0, 0.0])[r % 4], np.array([0.0, 1.0, 0.0, -1.0])[r % 4]
 
 
 def _block_ranks(a_abs: np.ndarray) -> np.ndarray:
@@ -408,9 +418,8 @@ def _separable_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: S
     k = 2 * np.pi / lam
     K, g = block["K"], block["g"]
     Kd = np.stack([K[:, 0, 0], K[:, 1, 1]], axis=-1)  # (m, 2)
-    a = 0.5 * k * p * p * (K[:, 0, 1] + K[:, 1, 0])  # (m,)
-    ranks = _block_ranks(np.abs(np.real(a)))
-    R = int(ranks.max(initial=0))
+    a = _cross_term(K, sensor, wavelength_nm)  # (m,)
+    R, pw, ir_re, ir_im = _series_weights(a, _block_ranks(np.abs(np.real(a))))
     pb = p * np.arange(-_XT_RING, _XT_RING + 1, dtype=float)[None, :, None, None]  # (1, B1, 1, 1) offsets along an axis
     edge0 = float(sensor.camera_offset_px) * pix
     offs = (np.arange(W * sub) + 0.5) / sub
@@ -427,10 +436,6 @@ def _separable_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: S
         B1 = qr.shape[1]
         T = _binomial_table(R).transpose(0, 2, 1).reshape(B1 * (R + 1), R + 1)
         xr, xi_ = (np.moveaxis(v, 1, 3).reshape(v.shape[0], v.shape[2], 2, -1) @ T for v in (qr, qi))
-    r = np.arange(R + 1)
-    fact = np.cumprod(np.concatenate([[1.0], 1.0 / np.arange(1, R + 1)]))
-    pw = (a[:, None] ** r * fact * (r <= ranks[:, None]))[:, None, :]  # (m, 1, R+1): a^r / r!
-    ir_re, ir_im = np.array([1.0, 0.0, -1.0, 0.0])[r % 4], np.array([0.0, 1.0, 0.0, -1.0])[r % 4]  # i^r
     yr = pw * (ir_re * xr[..., 1, :] - ir_im * xi_[..., 1, :])  # (m, S_y, R+1): (i a)^r / r! Y_r
     yi = pw * (ir_re * xi_[..., 1, :] + ir_im * xr[..., 1, :])
     xr, xi_ = np.swapaxes(xr[..., 0, :], 1, 2), np.swapaxes(xi_[..., 0, :], 1, 2)  # (m, R+1, S_x)
