@@ -181,6 +181,11 @@ def main(argv=None):
     ap.add_argument("--calibration-tolerances", default="none", help="'none' (lens known) or 'default'")
     ap.add_argument("--sensors", default="model,physical", help="session study: which sensors measure")
     ap.add_argument("--calibration-crosstalk", default=None, help="session study: calibrate's cross-talk model ('neighbours')")
+    ap.add_argument("--true-focal", type=float, default=None,
+                    help="session study: the physical lenslets' true focal length, mm (default the bench's, which "
+                         "the device converts with)")
+    ap.add_argument("--focal-sigma", type=float, default=None,
+                    help="session study: calibrate's relative prior 1-sigma of the focal length (estimates the gain)")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
@@ -203,7 +208,8 @@ def main(argv=None):
     if a.sessions:
         ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
         out = sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")), calibration_tolerances=ct,
-                       calibration_crosstalk=a.calibration_crosstalk)
+                       calibration_crosstalk=a.calibration_crosstalk, true_focal_mm=a.true_focal,
+                       focal_sigma=a.focal_sigma)
         if a.json:
             with open(a.json, "w") as fh:
                 json.dump(out, fh)
@@ -227,18 +233,23 @@ def main(argv=None):
 
 
 def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical"), seed: int = 0,
-             tolerances=None, calibration_tolerances=None, calibration_crosstalk: str | None = None) -> dict:
+             tolerances=None, calibration_tolerances=None, calibration_crosstalk: str | None = None,
+             true_focal_mm: float | None = None, focal_sigma: float | None = None) -> dict:
     """Session study: n_sessions 12-pose sessions per sensor (same seeds, same plan), calibrated
     (joint; calibration_tolerances None = the lens known; calibration_crosstalk: calibrate's sensor model,
-    e.g. 'neighbours', default the design bench's), scored on Z (session_sim.check_sessions)."""
+    e.g. 'neighbours', default the design bench's; focal_sigma: its focal-length prior, estimating the gain),
+    scored on Z (session_sim.check_sessions). true_focal_mm: the physical lenslets' (the device converts with the
+    bench's)."""
     from lensforge.verification.session_sim import check_sessions
 
     cal_bench = None
-    if calibration_crosstalk:
-        cal_bench = load_design_lens(design)[1].replace(sensor={"crosstalk": calibration_crosstalk})
+    changes = {**({"crosstalk": calibration_crosstalk} if calibration_crosstalk else {}),
+               **({"focal_length_rel_sigma": focal_sigma} if focal_sigma is not None else {})}
+    if changes:
+        cal_bench = load_design_lens(design)[1].replace(sensor=changes)
     out = {}
     for s in sensors:
-        sensor = PhysicalSensor(samples_per_pixel=spp) if s == "physical" else "model"
+        sensor = PhysicalSensor(samples_per_pixel=spp, focal_mm=true_focal_mm) if s == "physical" else "model"
         t0 = time.perf_counter()
         r = check_sessions(design, n_sessions, seed=seed, tolerances=tolerances, sensor=sensor,
                            calibration_tolerances=calibration_tolerances, calibration_bench=cal_bench,

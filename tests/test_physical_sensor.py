@@ -34,6 +34,17 @@ def test_plane_wave_of_known_tilt_lands_at_f_tan(bench):
         assert np.abs(err).max() < 1.5 * bench.noise.slope_sigma_urad * 1e-6
 
 
+
+def test_a_true_focal_length_off_the_devices_scales_every_slope(bench):
+    # the device divides spot displacements by its stored focal length (the bench's): lenslets 1.5 % longer
+    # put a tilt's spots 1.5 % farther out, and the reported slopes are 1.015 t (the gain calibrate estimates)
+    pup, _ = _noise_sigma(bench)
+    t = 8 * bench.sensor.pixel_mm / bench.sensor.lenslet_focal_mm
+    cfg = PhysicalSensor(samples_per_pixel=2, focal_mm=1.015 * bench.sensor.lenslet_focal_mm)
+    s, _, _ = field_slopes(plane_field(bench, cfg, pup.centres, slope=(t, -0.5 * t)), bench, cfg, pup.centres)
+    g = s.mean(axis=0) / np.array([t, -0.5 * t])
+    np.testing.assert_allclose(g, 1.015, rtol=5e-4)
+
 @pytest.mark.parametrize("R", [40.0, -60.0])
 def test_pure_defocus_gives_the_known_z4(bench, R):
     # a spherical wave converging to a point R after the lenslets (R < 0: diverging) has slopes

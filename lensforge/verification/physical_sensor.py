@@ -75,8 +75,10 @@ class PhysicalSensor:
     tracking_iterations: window re-centrings; lit_stride: 1 lights the whole array at once;
     s > 1 lights only every s-th lenslet along x and y at a time (s^2 runs), which takes the
     neighbours' cross-talk out (a diagnostic, not a sensor); window_px / threshold: None = the bench's
-    centroid_window_px / centroid_threshold; focal_mm: None = the bench's lenslet focal
-    length (the true device's value may differ from what the model assumes).
+    centroid_window_px / centroid_threshold; focal_mm: the lenslets' true focal length (None = the
+    bench's ``sensor.lenslet_focal_mm``). The light is propagated over it, while slopes are
+    converted with the bench's value, as a device converts with its stored MLA data: a
+    different true focal length is a common gain f_true / f_bench on every slope.
     """
 
     aperture: str = "square"
@@ -509,7 +511,9 @@ def field_slopes(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: np
     """(slopes (n, 2) rad, centroids (n, 2) mm, reference (n, 2) mm) of a field on the lenslet plane."""
     ref = reference_centroids(bench, cfg, centres) if reference is None else np.asarray(reference, float)
     cen = _centroids_of(field, bench, cfg, centres, start_mm=ref + cfg.focal(bench.sensor) * field.expected_slopes)
-    return (cen - ref) / cfg.focal(bench.sensor), cen, ref
+    # the device divides by its stored (calibrated) focal length, the bench's: a true one that differs
+    # (cfg.focal_mm) scales every reported slope by f_true / f_bench, the gain calibrate can estimate
+    return (cen - ref) / bench.sensor.lenslet_focal_mm, cen, ref
 
 
 def physical_measure(model: ForwardModel, pose, cfg: PhysicalSensor | None = None,

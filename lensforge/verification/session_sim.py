@@ -54,7 +54,7 @@ from ..optics.zernike import to_thorlabs_vector
 from .physical_sensor import PhysicalSensor, field_max_slope, physical_measure
 
 __all__ = ["SENSORS", "physical_config", "SimulatedSession", "simulate_session", "record_session", "RecordedSession",
-           "nees", "check_sessions", "session_outcome", "summarise_sessions", "NEES_3SIGMA_6DOF"]
+           "nees", "check_sessions", "session_outcome", "summarise_sessions", "NEES_3SIGMA_6DOF", "true_focal_mm"]
 
 SENSORS = ("model", "physical")
 
@@ -66,6 +66,12 @@ def physical_config(sensor: str | PhysicalSensor) -> PhysicalSensor | None:
     if sensor not in SENSORS:
         raise ConfigError(f"sensor: must be one of {list(SENSORS)}, got {sensor!r}")
     return PhysicalSensor() if sensor == "physical" else None
+
+
+def true_focal_mm(bench: Bench, sensor: str | PhysicalSensor) -> float:
+    """The simulated lenslets' true focal length (mm): the physical sensor's ``focal_mm``, else the bench's."""
+    cfg = physical_config(sensor)
+    return float(bench.sensor.lenslet_focal_mm if cfg is None else cfg.focal(bench.sensor))
 
 
 # ASSUMPTION (as verification/scenario.py): 1-sigma CAD error of the sensor placement Z
@@ -309,7 +315,7 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
             "p_value": float(r.p_value), "z_translation_error_mm": float(np.linalg.norm(e[:3])),
             "z_rotation_error_deg": math.degrees(float(np.linalg.norm(e[3:]))), "start": r.extra.get("start"),
             # the joint fit's focal-length estimate against the simulated sensor's (the bench's) focal length
-            "sensor": r.extra.get("sensor"), "lenslet_focal_true_mm": float(bench.sensor.lenslet_focal_mm)}
+            "sensor": r.extra.get("sensor"), "lenslet_focal_true_mm": true_focal_mm(bench, sensor)}
 
 
 def summarise_sessions(outcomes) -> dict:
