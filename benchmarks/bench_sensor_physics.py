@@ -5,6 +5,8 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      [--spp 4] [--json OUT.json]
      ... --design DESIGN.json --sessions 6 --spp 4 [--calibration-tolerances default] [--calibration-crosstalk neighbours]:
          the session study (calibrate with the cross-talk model against the physical sensor)
+         [--focal-sigma 0.01] [--true-focal 5.226]: calibrate estimates the focal-length gain; the physical
+         lenslets' true focal length differs from the bench's, which the device converts with
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
      ... --cost: S(p) with and without the cross-talk model, one physical pose
      ... --spheres: analytic spherical waves (R = +-20 ... 100 mm, uniform and Gaussian beam) through the
