@@ -44,6 +44,9 @@ def test_a_true_focal_length_off_the_devices_scales_every_slope(bench):
     s, _, _ = field_slopes(plane_field(bench, cfg, pup.centres, slope=(t, -0.5 * t)), bench, cfg, pup.centres)
     g = s.mean(axis=0) / np.array([t, -0.5 * t])
     np.testing.assert_allclose(g, 1.015, rtol=5e-4)
+    for bad in (0.0, -5.2, float("nan")):
+        with pytest.raises(ConfigError, match="focal_mm"):
+            PhysicalSensor(focal_mm=bad)
 
 @pytest.mark.parametrize("R", [40.0, -60.0])
 def test_pure_defocus_gives_the_known_z4(bench, R):

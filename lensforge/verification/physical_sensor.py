@@ -101,6 +101,9 @@ class PhysicalSensor:
             raise ConfigError(f"physical sensor aperture: must be one of {list(APERTURES)}, got {self.aperture!r}")
         if self.reference not in ("factory", "beam"):
             raise ConfigError(f"physical sensor reference: must be 'factory' or 'beam', got {self.reference!r}")
+        if self.focal_mm is not None and not (np.isfinite(self.focal_mm) and self.focal_mm > 0):
+            raise ConfigError(f"physical sensor focal_mm: the lenslets' true focal length must be a finite length > 0 "
+                              f"in mm (or None: the bench's), got {self.focal_mm!r}")
         if self.samples_per_pixel < 1 or self.margin_lenslets < 1 or self.potential_degree < 2:
             raise ConfigError("physical sensor: samples_per_pixel >= 1, margin_lenslets >= 1, potential_degree >= 2")
 
