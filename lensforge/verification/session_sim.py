@@ -314,7 +314,7 @@ def session_outcome(lens, bench: Bench, session_plan, seed: int, *, tolerances=N
             "inside_3sigma_each_axis": bool(np.all(np.abs(err_parent) <= 3 * sig)), "chi2_dof": float(r.chi2_dof),
             "p_value": float(r.p_value), "z_translation_error_mm": float(np.linalg.norm(e[:3])),
             "z_rotation_error_deg": math.degrees(float(np.linalg.norm(e[3:]))), "start": r.extra.get("start"),
-            # the joint fit's focal-length estimate against the simulated sensor's (the bench's) focal length
+            # the joint fit's focal-length estimate against the simulated lenslets' true focal length
             "sensor": r.extra.get("sensor"), "lenslet_focal_true_mm": true_focal_mm(bench, sensor)}
 
 
