@@ -38,6 +38,7 @@ import numpy as np
 import lensforge as lf
 from lensforge.calibration.session import load_design_lens, plan
 from lensforge.optics.shack_hartmann import ForwardModel
+from lensforge.fileio import check_output, write_atomic
 from lensforge.verification.physical_sensor import PhysicalSensor, physical_measure
 
 VARIANTS = {
@@ -192,11 +193,12 @@ def main(argv=None):
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     a = ap.parse_args(argv)
+    if a.json:  # before the work: a read-only or full folder is refused at once
+        check_output(a.json, folder=False, option="--json")
     if a.spheres:
         out = spheres(spp=a.spp)
         if a.json:
-            with open(a.json, "w") as fh:
-                json.dump(out, fh)
+            write_atomic(a.json, json.dumps(out))
         return
     if a.cost:
         cost()
@@ -204,8 +206,7 @@ def main(argv=None):
     if a.validate:
         out = validate(a.validate, a.design)
         if a.json:
-            with open(a.json, "w") as fh:
-                json.dump(out, fh)
+            write_atomic(a.json, json.dumps(out))
         return
     if a.sessions:
         ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
@@ -213,8 +214,7 @@ def main(argv=None):
                        calibration_crosstalk=a.calibration_crosstalk, true_focal_mm=a.true_focal,
                        focal_sigma=a.focal_sigma)
         if a.json:
-            with open(a.json, "w") as fh:
-                json.dump(out, fh)
+            write_atomic(a.json, json.dumps(out))
         return
     lenses = ([("design", a.design)] if a.design else []) + [(n, n) for n in a.lenses.split(",") if n]
     out = {}
@@ -230,8 +230,7 @@ def main(argv=None):
                   + " | Z4 (nm): " + " ".join(f"{z:6.2f}" for z in z4)
                   + f" | {np.mean([row['seconds'] for row in r['rows']]):.1f} s/pose", flush=True)
             if a.json:
-                with open(a.json, "w") as fh:
-                    json.dump(out, fh)
+                write_atomic(a.json, json.dumps(out))
 
 
 def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical"), seed: int = 0,
@@ -275,4 +274,15 @@ def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from lensforge.errors import LensforgeError
+
+    try:
+        main()
+    except LensforgeError as e:  # a bad option or setting: one line, as the CLI
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        sys.exit(130)

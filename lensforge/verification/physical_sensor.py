@@ -47,6 +47,7 @@ from scipy.spatial import cKDTree
 from numpy.polynomial import legendre as leg
 
 from ..errors import ConfigError
+from ..input_checks import BENCH_RANGES, number
 from ..optics.bench import Bench, Sensor
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, aim_rays, trace_rays
@@ -101,9 +102,8 @@ class PhysicalSensor:
             raise ConfigError(f"physical sensor aperture: must be one of {list(APERTURES)}, got {self.aperture!r}")
         if self.reference not in ("factory", "beam"):
             raise ConfigError(f"physical sensor reference: must be 'factory' or 'beam', got {self.reference!r}")
-        if self.focal_mm is not None and not (np.isfinite(self.focal_mm) and self.focal_mm > 0):
-            raise ConfigError(f"physical sensor focal_mm: the lenslets' true focal length must be a finite length > 0 "
-                              f"in mm (or None: the bench's), got {self.focal_mm!r}")
+        if self.focal_mm is not None:  # the lenslets' true focal length: the bench's range and unit
+            number(self.focal_mm, "physical sensor focal_mm", BENCH_RANGES["sensor.lenslet_focal_mm"])
         if self.samples_per_pixel < 1 or self.margin_lenslets < 1 or self.potential_degree < 2:
             raise ConfigError("physical sensor: samples_per_pixel >= 1, margin_lenslets >= 1, potential_degree >= 2")
 
