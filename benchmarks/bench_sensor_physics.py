@@ -83,9 +83,10 @@ def compare(lens, bench, poses, variant: str, spp: int) -> dict:
     return {"modes": model.modes.tolist(), "sigma_nm": (sig * 1e3).tolist(), "rows": rows}
 
 
-def validate(path: str, design: str | None) -> dict:
-    """The fast model with cross-talk (sensor.crosstalk = 'neighbours') at the poses of a compare() JSON:
-    per pose max |dz|/sigma of the old model, the new model, against the physical reference."""
+def validate(path: str, design: str | None, models=("neighbours", "cells")) -> dict:
+    """The fast cross-talk models (sensor.crosstalk, ``models``) at the poses of a compare() JSON: per pose
+    max |dz|/sigma of the old model (the compare run's own-centroid model) and of each, against the physical
+    reference."""
     d = json.load(open(path))
     out = {}
     for key, r in d.items():
@@ -96,21 +97,27 @@ def validate(path: str, design: str | None) -> dict:
         sensor_changes, _ = VARIANTS[variant]
         changes = dict(sensor_changes)
         laser = changes.pop("laser", None)
-        b = bench.replace(sensor={**changes, "crosstalk": "neighbours"}, **({"laser": laser} if laser else {}))
-        model = ForwardModel(b, lens)
-        sig = np.sqrt(np.diag(model.noise_cov))
         poses = np.array([row["pose"] for row in r["rows"]])
-        t0 = time.perf_counter()
-        z_new = model.evaluate(poses, check_range=False).z
-        dt = (time.perf_counter() - t0) / len(poses)
-        rows = []
-        for i, row in enumerate(r["rows"]):
-            zp, zo = np.array(row["z_physical_um"]), np.array(row["z_model_um"])
-            rows.append({"old_sigma": ((zp - zo) / sig).tolist(), "new_sigma": ((zp - z_new[i]) / sig).tolist(),
-                         "z_new_um": z_new[i].tolist()})
-        out[key] = {"modes": r["modes"], "rows": rows, "seconds_per_pose": dt}
-        print(f"{key:28s} max |dz|/sigma old: " + " ".join(f"{max(np.abs(x['old_sigma'])):6.1f}" for x in rows)
-              + " | new: " + " ".join(f"{max(np.abs(x['new_sigma'])):5.1f}" for x in rows), flush=True)
+        rows = [{"old_sigma": None} for _ in r["rows"]]
+        line = f"{key:28s} max |dz|/sigma old: "
+        for mname in models:
+            b = bench.replace(sensor={**changes, "crosstalk": mname}, **({"laser": laser} if laser else {}))
+            model = ForwardModel(b, lens)
+            sig = np.sqrt(np.diag(model.noise_cov))
+            t0 = time.perf_counter()
+            z_new = model.evaluate(poses, check_range=False).z
+            dt = (time.perf_counter() - t0) / len(poses)
+            for i, row in enumerate(r["rows"]):
+                zp, zo = np.array(row["z_physical_um"]), np.array(row["z_model_um"])
+                rows[i]["old_sigma"] = ((zp - zo) / sig).tolist()
+                rows[i][f"{mname}_sigma"] = ((zp - z_new[i]) / sig).tolist()
+                rows[i][f"z_{mname}_um"] = z_new[i].tolist()
+            rows_m = [max(np.abs(x[f"{mname}_sigma"])) for x in rows]
+            out.setdefault(key, {"modes": r["modes"], "rows": rows})[f"seconds_per_pose_{mname}"] = dt
+        line += " ".join(f"{max(np.abs(x['old_sigma'])):6.1f}" for x in rows)
+        for mname in models:
+            line += f" | {mname}: " + " ".join(f"{max(np.abs(x[f'{mname}_sigma'])):5.1f}" for x in rows)
+        print(line, flush=True)
     return out
 
 
@@ -189,7 +196,8 @@ def main(argv=None):
                          "the device converts with)")
     ap.add_argument("--focal-sigma", type=float, default=None,
                     help="session study: calibrate's relative prior 1-sigma of the focal length (estimates the gain)")
-    ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk model at its poses")
+    ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk models at its poses")
+    ap.add_argument("--models", default="neighbours,cells", help="--validate: the cross-talk models to score")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     a = ap.parse_args(argv)
@@ -204,7 +212,7 @@ def main(argv=None):
         cost()
         return
     if a.validate:
-        out = validate(a.validate, a.design)
+        out = validate(a.validate, a.design, tuple(a.models.split(",")))
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return

@@ -42,6 +42,8 @@ _SERIES_TOL = 1e-15  # the alpha series' last term: (|alpha| / 4)^N / N! below t
 _MAX_TERMS = 40  # alpha-series terms at most: (|alpha| / 4)^40 / 40! < 1e-15 for |alpha| <= 26 (1e-8 at 40)
 _RECURSION_GROWTH = 1e3  # the Fresnel branch's upward moment recursion: rounding growth allowed
 _BETA_TERMS = 26  # power-series terms of the top moment below BETA_SPLIT: (5)^52 / 52! ~ 1e-31
+_GRAD_TOL = 1e-12  # the irradiance gradient's series exp(gamma t) = sum_n (gamma t)^n / n!: terms down to this
+_GRAD_MAX_TERMS = 24  # ... at most: (|gamma| / 2)^24 / 24! < 1e-12 for |gamma| <= 8
 
 
 def _fresnel_field(beta, alpha):
@@ -59,34 +61,48 @@ def _fresnel_field(beta, alpha):
 
 
 @nb.njit(cache=True)
-def _moment_jets(beta, alpha, big_re, big_im, r_max, out):
-    """out[i, r] = (Re M_r, Im M_r, Re dM_r/dbeta, Im .., Re dM_r/dalpha, Im ..), r = 0 .. r_max, at
-    (beta[i], alpha[i]); dM_r/dbeta = -i M_(r+1), dM_r/dalpha = i M_(r+2). big_re, big_im: A = M_0 where
-    |alpha| >= ALPHA_FRESNEL (from the Fresnel integrals), unused elsewhere."""
-    G = np.empty(2 * _MAX_TERMS + r_max + 4)  # moments of exp(-i beta t) alone: cos part (even m) ...
-    H = np.empty(2 * _MAX_TERMS + r_max + 4)  # ... sin part (odd m)
+def _moment_jets(beta, alpha, gamma, big_re, big_im, r_max, out):
+    """out[i, r] = (Re M_r, Im M_r, Re dM_r/dbeta, Im .., Re dM_r/dalpha, Im .., Re dM_r/dgamma, Im ..),
+    r = 0 .. r_max, at (beta[i], alpha[i], gamma[i]); dM_r/dbeta = -i M_(r+1), dM_r/dalpha = i M_(r+2),
+    dM_r/dgamma = M_(r+1). big_re, big_im: A at gamma = 0 where |alpha| >= ALPHA_FRESNEL (from the Fresnel
+    integrals), unused elsewhere. gamma != 0: the moments of the plain aperture up to r_max + 2 + N, combined
+    as sum_n gamma^n / n! M_(r+n) (``_GRAD_TOL``)."""
+    n_g_max = _GRAD_MAX_TERMS
+    G = np.empty(2 * _MAX_TERMS + r_max + n_g_max + 4)  # moments of exp(-i beta t) alone: cos part (even m) ...
+    H = np.empty(2 * _MAX_TERMS + r_max + n_g_max + 4)  # ... sin part (odd m)
+    Mr0 = np.empty(r_max + n_g_max + 3)
+    Mi0 = np.empty(r_max + n_g_max + 3)
     Mr = np.empty(r_max + 3)
     Mi = np.empty(r_max + 3)
     for i in range(beta.size):
         b = beta[i]
         a = alpha[i]
+        gm = gamma[i]
+        # terms of the gradient's series: (|gamma| / 2)^n / n! down to _GRAD_TOL
+        n_g, gt = 0, 1.0
+        while n_g < n_g_max:
+            gt *= 0.5 * abs(gm) / (n_g + 1)
+            if gt < _GRAD_TOL:
+                break
+            n_g += 1
+        r_top = r_max + n_g  # plain moments wanted: 0 .. r_top + 2
         fresnel = abs(a) >= ALPHA_FRESNEL
         if fresnel:  # the upward recursion multiplies rounding by |b| / 2|a| a step: only where that stays small
             ratio = abs(b) / (2.0 * abs(a))
-            fresnel = ratio <= 1.0 or ratio ** (r_max + 1) < _RECURSION_GROWTH
+            fresnel = ratio <= 1.0 or ratio ** (r_top + 1) < _RECURSION_GROWTH
         if fresnel:
-            Mr[0], Mi[0] = big_re[i], big_im[i]
+            Mr0[0], Mi0[0] = big_re[i], big_im[i]
             ep, em = 0.25 * a - 0.5 * b, 0.25 * a + 0.5 * b  # phi at t = +1/2, -1/2
             epr, epi, emr, emi = np.cos(ep), np.sin(ep), np.cos(em), np.sin(em)
             hp, hm = 1.0, 1.0  # (1/2)^r, (-1/2)^r
             inv2a = 0.5 / a
-            for r in range(r_max + 2):  # 2 a M_(r+1) = b M_r + i r M_(r-1) - i [t^r exp(i phi)]
+            for r in range(r_top + 2):  # 2 a M_(r+1) = b M_r + i r M_(r-1) - i [t^r exp(i phi)]
                 br, bi = hp * epr - hm * emr, hp * epi - hm * emi
-                rr, ri = b * Mr[r] + bi, b * Mi[r] - br
+                rr, ri = b * Mr0[r] + bi, b * Mi0[r] - br
                 if r > 0:
-                    rr -= r * Mi[r - 1]
-                    ri += r * Mr[r - 1]
-                Mr[r + 1], Mi[r + 1] = rr * inv2a, ri * inv2a
+                    rr -= r * Mi0[r - 1]
+                    ri += r * Mr0[r - 1]
+                Mr0[r + 1], Mi0[r + 1] = rr * inv2a, ri * inv2a
                 hp *= 0.5
                 hm *= -0.5
         else:
@@ -95,7 +111,7 @@ def _moment_jets(beta, alpha, big_re, big_im, r_max, out):
             while term >= _SERIES_TOL and n_terms < _MAX_TERMS:
                 n_terms += 1
                 term *= q / n_terms
-            mmax = 2 * n_terms + r_max + 2
+            mmax = 2 * n_terms + r_top + 2
             if abs(b) >= BETA_SPLIT:
                 inv = 1.0 / b
                 s2, c2 = 2.0 * np.sin(0.5 * b) * inv, 2.0 * np.cos(0.5 * b) * inv
@@ -125,9 +141,9 @@ def _moment_jets(beta, alpha, big_re, big_im, r_max, out):
                         H[m - 1] = (p2 * sb - b * G[m]) / m
                     p2 *= 2.0
             # M_r = sum_n (i a)^n / n! F_(2n+r), F_m = G_m (even m), -i H_m (odd m)
-            for r in range(r_max + 3):
-                Mr[r] = 0.0
-                Mi[r] = 0.0
+            for r in range(r_top + 3):
+                Mr0[r] = 0.0
+                Mi0[r] = 0.0
             coef = 1.0
             for n in range(n_terms + 1):
                 if n > 0:
@@ -135,14 +151,28 @@ def _moment_jets(beta, alpha, big_re, big_im, r_max, out):
                 k = n % 4  # i^n = cr + i ci: 1, i, -1, -i
                 cr = coef if k == 0 else (-coef if k == 2 else 0.0)
                 ci = coef if k == 1 else (-coef if k == 3 else 0.0)
-                for r in range(0, r_max + 3, 2):
+                for r in range(0, r_top + 3, 2):
                     g = G[2 * n + r]
-                    Mr[r] += cr * g
-                    Mi[r] += ci * g
-                for r in range(1, r_max + 3, 2):  # (cr + i ci) (-i H) = ci H - i cr H
+                    Mr0[r] += cr * g
+                    Mi0[r] += ci * g
+                for r in range(1, r_top + 3, 2):  # (cr + i ci) (-i H) = ci H - i cr H
                     h = H[2 * n + r]
-                    Mr[r] += ci * h
-                    Mi[r] -= cr * h
+                    Mr0[r] += ci * h
+                    Mi0[r] -= cr * h
+        if n_g == 0:
+            for r in range(r_max + 3):
+                Mr[r] = Mr0[r]
+                Mi[r] = Mi0[r]
+        else:
+            for r in range(r_max + 3):
+                sr, si, c = 0.0, 0.0, 1.0
+                for n in range(n_g + 1):
+                    if n > 0:
+                        c *= gm / n
+                    sr += c * Mr0[r + n]
+                    si += c * Mi0[r + n]
+                Mr[r] = sr
+                Mi[r] = si
         for r in range(r_max + 1):
             out[i, r, 0] = Mr[r]
             out[i, r, 1] = Mi[r]
@@ -150,12 +180,17 @@ def _moment_jets(beta, alpha, big_re, big_im, r_max, out):
             out[i, r, 3] = -Mr[r + 1]
             out[i, r, 4] = -Mi[r + 2]  # i M_(r+2)
             out[i, r, 5] = Mr[r + 2]
+            out[i, r, 6] = Mr[r + 1]  # M_(r+1)
+            out[i, r, 7] = Mi[r + 1]
 
 
-def _moments(beta: np.ndarray, alpha: np.ndarray, r_max: int) -> np.ndarray:
-    """(..., r_max + 1, 6) jets of M_0 .. M_r_max at real beta, alpha of one shape (``_moment_jets``)."""
+def _moments(beta: np.ndarray, alpha: np.ndarray, gamma: np.ndarray, r_max: int) -> np.ndarray:
+    """(..., r_max + 1, 8) jets of M_0 .. M_r_max at real beta, alpha, gamma of one shape (``_moment_jets``)."""
     b = np.ascontiguousarray(beta, dtype=float).ravel()
     a = np.ascontiguousarray(alpha, dtype=float).ravel()
+    g = np.ascontiguousarray(gamma, dtype=float).ravel()
+    if np.any(np.abs(g) > 8.0):
+        raise ValueError("square_aperture_moments: |gamma| > 8 (an irradiance ratio of e^16 across a sub-aperture)")
     big_re, big_im = np.zeros_like(b), np.zeros_like(b)
     big = np.nonzero(np.abs(a) >= ALPHA_FRESNEL)[0]
     if big.size:
@@ -163,24 +198,27 @@ def _moments(beta: np.ndarray, alpha: np.ndarray, r_max: int) -> np.ndarray:
         neg = ab < 0
         fr, fi = _fresnel_field(np.where(neg, -bb, bb), np.abs(ab))
         big_re[big], big_im[big] = fr, np.where(neg, -fi, fi)
-    out = np.empty((b.size, int(r_max) + 1, 6))
+    out = np.empty((b.size, int(r_max) + 1, 8))
     with compile_notice("cross-talk aperture kernel"):
-        _moment_jets(b, a, big_re, big_im, int(r_max), out)
-    return out.reshape(np.shape(beta) + (int(r_max) + 1, 6))
+        _moment_jets(b, a, g, big_re, big_im, int(r_max), out)
+    return out.reshape(np.shape(beta) + (int(r_max) + 1, 8))
 
 
-def square_aperture_moments(beta, alpha, r_max: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(Re, Im) (..., r_max + 1) of the moments M_r(beta, alpha) = int_{-1/2}^{1/2} t^r exp(i alpha t^2 - i beta t) dt,
-    r = 0 .. r_max (M_0 = A); beta (...) and alpha broadcastable to it. Complex inputs are a complex step:
-    the result carries the moments' exact first-order change (Re and Im each complex), so Im(out) / h is
-    the derivative along the step."""
+def square_aperture_moments(beta, alpha, r_max: int = 0, gamma=0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(Re, Im) (..., r_max + 1) of the moments M_r = int_{-1/2}^{1/2} t^r exp(gamma t + i alpha t^2 - i beta t) dt,
+    r = 0 .. r_max (M_0 = A; gamma: an irradiance gradient across the aperture, amplitude exp(gamma t)); beta (...)
+    and alpha, gamma broadcastable to it. Complex inputs are a complex step: the result carries the moments' exact
+    first-order change (Re and Im each complex), so Im(out) / h is the derivative along the step."""
     beta = np.asarray(beta)
-    alpha = np.broadcast_to(np.asarray(alpha), beta.shape)
-    if not (np.iscomplexobj(beta) or np.iscomplexobj(alpha)):
-        j = _moments(beta, alpha, r_max)
+    shape = np.broadcast_shapes(beta.shape, np.shape(alpha), np.shape(gamma))
+    beta = np.broadcast_to(beta, shape)
+    alpha = np.broadcast_to(np.asarray(alpha), shape)
+    gamma = np.broadcast_to(np.asarray(gamma), shape)
+    if not (np.iscomplexobj(beta) or np.iscomplexobj(alpha) or np.iscomplexobj(gamma)):
+        j = _moments(beta, alpha, gamma, r_max)
         return j[..., 0], j[..., 1]
-    j = _moments(np.real(beta), np.real(alpha), r_max)
-    db, da = np.imag(beta)[..., None], np.imag(alpha)[..., None]
-    re = j[..., 0] + 1j * (j[..., 2] * db + j[..., 4] * da)
-    im = j[..., 1] + 1j * (j[..., 3] * db + j[..., 5] * da)
+    j = _moments(np.real(beta), np.real(alpha), np.real(gamma), r_max)
+    db, da, dg = np.imag(beta)[..., None], np.imag(alpha)[..., None], np.imag(gamma)[..., None]
+    re = j[..., 0] + 1j * (j[..., 2] * db + j[..., 4] * da + j[..., 6] * dg)
+    im = j[..., 1] + 1j * (j[..., 3] * db + j[..., 5] * da + j[..., 7] * dg)
     return re, im

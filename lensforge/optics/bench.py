@@ -88,9 +88,11 @@ class Sensor:
     the centroid is taken (ASSUMPTION 27 px = one 150 um pitch; 0 = complete-spot
     centroid); centroid_threshold: noise cut as a fraction of the spot peak
     subtracted before the centroid (ASSUMPTION 0, see ``centroid.py``).
-    crosstalk: 'none' (each lenslet alone, its window centred on its spot) or 'neighbours'
+    crosstalk: 'none' (each lenslet alone, its window centred on its spot), 'neighbours'
     (``centroid.crosstalk_slopes``: the 7 x 7 neighbours' coherent spots in each whole-pixel
-    window, against the factory reference; issue 21); camera_offset_px: the camera pixel
+    window, the block's field extrapolated from the own lenslet's, against the factory reference) or
+    'cells' (``centroid.cell_crosstalk_slopes``: every lit lenslet within 4 rings, each with its own
+    traced field; issue 21); camera_offset_px: the camera pixel
     grid's offset from the lenslet array along x and y (ASSUMPTION 1/3 px: not known; 0
     puts the central row's and column's reference spots on pixel corners, a placement tie).
     focal_length_rel_sigma: relative 1-sigma uncertainty of the effective lenslet focal
@@ -229,7 +231,7 @@ _POSITIVE = {
     "sensor.pixel_mm", "sensor.subaperture_quadrature", "laser.expander_magnification",
 }
 SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
-CROSSTALK_MODELS = ("none", "neighbours")
+CROSSTALK_MODELS = ("none", "neighbours", "cells")
 _NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
            "sensor.centroid_threshold", "sensor.validated_slope_mrad", "sensor.focal_length_rel_sigma"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}

@@ -305,23 +305,30 @@ def _cross_term(K: np.ndarray, sensor: Sensor, wavelength_nm: float) -> np.ndarr
 def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sensor, wavelength_nm: float,
                      sub: int) -> np.ndarray:
     """Centroid (m, 2) mm in the windows starting at pixels st (m, 2) of m lenslets whose blocks are ``block``
-    (``_local_block``)."""
+    (``_local_block``: one curvature per lenslet; ``_cell_block``: each sub-aperture its own curvature ``alpha``
+    (m, B, 2), cross term ``a_xy`` (m, B) and irradiance gradient ``gam`` (m, B, 2), and its centre offset ``pe``)."""
     f, p, pix, W = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, int(sensor.centroid_window_px)
     lam = wavelength_nm * 1e-6
     k = 2 * np.pi / lam
-    pe = p * _neighbour_offsets(_XT_RING)  # (B, 2)
     nb_pos, cr, ci, a_xy = block["nb_pos"], block["cr"], block["ci"], block["a_xy"]
-    alpha = block["alpha"][:, None, None, :]  # (m, 1, 1, 2)
+    pe = block["pe"] if "pe" in block else p * _neighbour_offsets(_XT_RING)  # (B, 2) or (m, B, 2)
+    per_cell = block["alpha"].ndim == 3
+    alpha = block["alpha"][:, :, None, :] if per_cell else block["alpha"][:, None, None, :]  # (m, B or 1, 1, 2)
     edge0 = float(sensor.camera_offset_px) * pix
     offs = (np.arange(W * sub) + 0.5) / sub
     # each sub-aperture's own curvature: the phase k (K_xx X^2 + (K_xy + K_yx) X Y + K_yy Y^2) / 2, X = p t_x;
     # K_xy's factor exp(i a t_x t_y) as sum_r (i a)^r / r! t_x^r t_y^r, terms zero beyond each sub-aperture's
     # own R: the result does not depend on which lenslets share a pass
     R, pw, ir_re, ir_im = _series_weights(a_xy, _xy_ranks(np.abs(np.real(a_xy))))
+    if not per_cell:
+        pw = pw[:, None, :]
     xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (m, S, 2) rel. own spot
     arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (m, B, S, 2)
-    mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
-    ramp = (-k * pe[:, None, :] * xs[..., None, :, :] / f)[..., None]
+    if "gam" in block:  # the irradiance gradient across each sub-aperture (its own weighting of the slope)
+        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R, block["gam"][:, :, None, :])
+    else:
+        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
+    ramp = (-k * np.einsum("...bi,...si->...bsi", np.broadcast_to(pe, nb_pos.shape), xs) / f)[..., None]
     cos_r, sin_r = np.cos(ramp), np.sin(ramp)
     ar, ai = mr * cos_r - mi * sin_r, mr * sin_r + mi * cos_r  # (m, B, S, 2, R+1)
     # y factor carries C_b (i a)^r / r!: its real and imaginary parts (real arithmetic for the complex step)
@@ -338,13 +345,13 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     xi_ = np.ascontiguousarray(np.moveaxis(ai[..., 0, :], 2, -1).reshape(m_, -1, S))
     ur = yrT @ xr - yiT @ xi_  # (m, S_y, S_x)
     ui = yrT @ xi_ + yiT @ xr
-    return _pixel_centroid(ur, ui, st, sensor, sub)
+    return _pixel_centroid(ur, ui, st, sensor, sub, W)
 
 
-def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sensor, sub: int) -> np.ndarray:
+def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sensor, sub: int, W: int) -> np.ndarray:
     """Centroid (m, 2) mm of the field (ur + i ui) (m, S_y, S_x) sampled sub x sub per pixel in the windows starting
     at pixels st (m, 2), ``centroid_threshold`` x the window's peak cut."""
-    pix, W = sensor.pixel_mm, int(sensor.centroid_window_px)
+    pix = sensor.pixel_mm
     cut = float(sensor.centroid_threshold)
     edge0 = float(sensor.camera_offset_px) * pix
     m_ = ur.shape[0]
@@ -369,7 +376,7 @@ def _series_weights(a: np.ndarray, ranks: np.ndarray):
     R = int(ranks.max(initial=0))
     r = np.arange(R + 1)
     fact = np.cumprod(np.concatenate([[1.0], 1.0 / np.arange(1, R + 1)]))
-    pw = (a[:, None] ** r * fact * (r <= ranks[:, None]))[:, None, :]
+    pw = a[..., None] ** r * fact * (r <= ranks[..., None])
     return R, pw, np.array([1.0, 0.0, -1.0, 0.0])[r % 4], np.array([0.0, 1.0, 0.0, -1.0])[r % 4]
 
 
@@ -436,10 +443,11 @@ def _separable_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: S
         B1 = qr.shape[1]
         T = _binomial_table(R).transpose(0, 2, 1).reshape(B1 * (R + 1), R + 1)
         xr, xi_ = (np.moveaxis(v, 1, 3).reshape(v.shape[0], v.shape[2], 2, -1) @ T for v in (qr, qi))
+    pw = pw[:, None, :]
     yr = pw * (ir_re * xr[..., 1, :] - ir_im * xi_[..., 1, :])  # (m, S_y, R+1): (i a)^r / r! Y_r
     yi = pw * (ir_re * xi_[..., 1, :] + ir_im * xr[..., 1, :])
     xr, xi_ = np.swapaxes(xr[..., 0, :], 1, 2), np.swapaxes(xi_[..., 0, :], 1, 2)  # (m, R+1, S_x)
-    return _pixel_centroid(yr @ xr - yi @ xi_, yr @ xi_ + yi @ xr, st, sensor, sub)
+    return _pixel_centroid(yr @ xr - yi @ xi_, yr @ xi_ + yi @ xr, st, sensor, sub, W)
 
 
 @lru_cache(maxsize=16)
@@ -521,3 +529,157 @@ def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray,
         jac[..., j] = crosstalk_shift(spot + 1j * e[:2], centres, K + 1j * e[2:6].reshape(2, 2), g + 1j * e[6:],
                                       sensor, wavelength_nm, windows=windows).imag / h
     return ds * (1.0 + p * p / (6.0 * f * f)) + np.einsum("...kl,...ld->...kd", jac, d_local) / f
+
+
+# ----------------------------------------------------------------------------- cross-talk from each lenslet's own field
+
+# rings of lit lenslets around each pupil lenslet that the 'cells' model sums, and field samples per pixel and axis.
+# Plane waves (10 and 50 mrad) against the full-array physical reference at 8 samples per pixel, RMS per lenslet:
+# rings 1-7: 0.9, 3.9, 4.0, 0.70, 0.66, 0.62, 0.60 urad (the 7 x 7 block is an unlucky truncation of the
+# neighbours' ~1/distance sinc tails); at ring 5, 2 / 4 / 8 samples per pixel: 1.7-4.2 / 0.55-0.75 / 0.48-0.73 urad
+CELL_RING = 4
+CELL_SUB = 4
+
+
+def lit_lenslets(sensor: Sensor, pupil_centres: np.ndarray, ring: int = CELL_RING) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (L, 2) mm, neighbours (n, (2 ring + 1)^2) int) of the lenslets lit around the n pupil lenslets: every
+    lenslet of the sensor within ``ring`` rings (Chebyshev distance in pitches) of a pupil lenslet, the pupil's
+    first and in its order; neighbours[i] indexes the lit lenslets of pupil lenslet i's block, row-major from
+    (-ring, -ring) (x fastest), -1 where the block leaves the sensor."""
+    p = sensor.pitch_mm
+    n_side = int(np.floor(sensor.aperture_mm / p + 1e-9))
+    grid = np.rint(np.asarray(pupil_centres) / p + 0.5 * (n_side - 1)).astype(int)  # (n, 2) grid indices
+    off = _neighbour_offsets(ring).astype(int)
+    cand = (grid[:, None, :] + off[None]).reshape(-1, 2)
+    cand = cand[np.all((cand >= 0) & (cand < n_side), axis=1)]
+    keys = grid[:, 0] * n_side + grid[:, 1]
+    extra = np.setdiff1d(np.unique(cand[:, 0] * n_side + cand[:, 1]), keys)
+    allk = np.concatenate([keys, extra])
+    lookup = {int(v): i for i, v in enumerate(allk)}
+    ij = np.stack([allk // n_side, allk % n_side], axis=1)
+    centres = p * (ij - 0.5 * (n_side - 1))
+    nb = grid[:, None, :] + off[None]
+    inside = np.all((nb >= 0) & (nb < n_side), axis=2)
+    nbk = nb[..., 0] * n_side + nb[..., 1]
+    neighbours = np.where(inside, np.vectorize(lambda v: lookup.get(int(v), -1))(nbk), -1)
+    centres.setflags(write=False)
+    neighbours.setflags(write=False)
+    return centres, neighbours
+
+
+def cell_fields(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray, pitch: float):
+    """Each lenslet's local field from its quadrature rays: (tilt (..., L, 2) = the plain mean slope, K (..., L, 2, 2)
+    = d s_i / d x_j (1/mm), g (..., L, 2) = gradient of ln I (1/mm), ln of the amplitude at the centre (..., L),
+    lit (..., L)), a least-squares plane in the slopes and in ln I over the rule. A lenslet with a ray lost (weight
+    0) is dark (lit False, its field zero)."""
+    lit = np.all(np.real(wi) > 0, axis=-1)
+    safe = np.where(lit[..., None], wi, weights)
+    ln_i = np.log(safe / weights)
+    m2 = weights @ offsets**2
+    tilt = np.einsum("q,...qk->...k", weights, sq)
+    K = np.einsum("q,qj,...qi->...ij", weights, offsets, sq) / (m2 * pitch)[None, :]
+    g = np.einsum("q,qj,...q->...j", weights, offsets, ln_i) / (m2 * pitch)
+    ln_a = 0.5 * np.einsum("q,...q->...", weights, ln_i)
+    z = np.zeros((), dtype=tilt.dtype)
+    return (np.where(lit[..., None], tilt, z), np.where(lit[..., None, None], K, z), np.where(lit[..., None], g, z),
+            np.where(lit, ln_a, z), lit)
+
+
+def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centres: np.ndarray, sensor: Sensor,
+                wavelength_nm: float) -> dict:
+    """The block of m window rows (``rows`` (m, 2): leading index, pupil lenslet) from every lit lenslet's own field
+    (``cells``: tilt, K, g, ln_a, lit, each with a flattened leading axis): per neighbour b its spot relative to the
+    own spot, complex amplitude (the amplitude ratio, the piston between the two centres by the two-point Hermite rule
+    on their slopes and curvatures, the lenslets' focusing phase), curvature alpha (m, B, 2), cross term a_xy (m, B),
+    irradiance gradient gam (m, B, 2) and centre offset pe (m, B, 2)."""
+    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    k = 2 * np.pi / (wavelength_nm * 1e-6)
+    lead, i = rows[:, 0], rows[:, 1]
+    nb = neighbours[i]  # (m, B)
+    have = nb >= 0
+    nbc = np.where(have, nb, 0)
+    L = lead[:, None]
+
+    def own(key):
+        return cells[key][lead, i]
+
+    def other(key):
+        return cells[key][L, nbc]
+
+    pe = lit_centres[nbc] - lit_centres[i][:, None, :]  # (m, B, 2)
+    s0, sb = own("tilt")[:, None, :], other("tilt")
+    K0, Kb = own("K"), other("K")
+    Ks0, Ksb = 0.5 * (K0 + np.swapaxes(K0, -1, -2)), 0.5 * (Kb + np.swapaxes(Kb, -1, -2))
+    d_w = (0.5 * np.einsum("mbi,mbi->mb", pe, s0 + sb)
+           + np.einsum("mbi,mbij,mbj->mb", pe, Ks0[:, None] - Ksb, pe) / 12.0)  # W_b - W_own at the centres
+    phase = k * (d_w - np.einsum("mbi,mbi->mb", pe, np.broadcast_to(s0, pe.shape))
+                 + 0.5 * (pe**2).sum(axis=-1) / f)
+    amp = np.where(have & other("lit"), np.exp(other("ln_a") - own("ln_a")[:, None]), 0.0)
+    alpha = 0.5 * k * p * p * np.stack([Kb[..., 0, 0], Kb[..., 1, 1]], axis=-1)
+    return {"nb_pos": pe + f * (sb - s0), "cr": amp * np.cos(phase), "ci": amp * np.sin(phase), "alpha": alpha,
+            "a_xy": _cross_term(Kb, sensor, wavelength_nm), "gam": 0.5 * p * other("g"), "pe": pe}
+
+
+def cell_shift(spot: np.ndarray, cells: dict, lit_centres: np.ndarray, neighbours: np.ndarray, sensor: Sensor,
+               wavelength_nm: float, iterations: int = 1, windows: np.ndarray | None = None,
+               return_windows: bool = False):
+    """Centroid minus spot (..., n, 2) mm of each pupil lenslet's pixel window under the coherent sum of the fields of
+    the lit lenslets of its block (``lit_lenslets``), each with its own tilt, curvature, irradiance gradient and
+    amplitude (``cell_fields``; cells[...]: (..., L, ...)), the pistons between them from their slopes; spot
+    (..., n, 2) the own spots. Windows placed and re-centred as ``crosstalk_shift`` (frozen ones: ``windows``)."""
+    lead = spot.shape[:-2]
+    n = spot.shape[-2]
+    P = int(np.prod(lead, dtype=int))
+    flat = {key: np.reshape(v, (P,) + v.shape[len(lead):]) for key, v in cells.items()}
+    sp = spot.reshape(P * n, 2)
+    rows = np.stack(np.meshgrid(np.arange(P), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
+    out = np.empty(sp.shape, dtype=np.result_type(spot, *[v.dtype for v in flat.values()]))
+    st_all = np.empty(sp.shape)
+    frozen = None if windows is None else np.broadcast_to(windows, lead + (n, 2)).reshape(-1, 2)
+    for a in range(0, len(rows), _XT_CHUNK):
+        c = slice(a, a + _XT_CHUNK)
+        block = _cell_block(rows[c], flat, neighbours, lit_centres, sensor, wavelength_nm)
+        out[c], st_all[c] = _tracked_window_shift(sp[c], block, sensor, wavelength_nm, iterations, CELL_SUB,
+                                                  _window_centroid, None if frozen is None else frozen[c])
+    out = out.reshape(lead + (n, 2))
+    return (out, st_all.reshape(lead + (n, 2))) if return_windows else out
+
+
+@lru_cache(maxsize=16)
+def _cell_reference_shift(sensor: Sensor, wavelength_nm: float, key: bytes, L: int, nkey: bytes, n: int) -> np.ndarray:
+    centres = np.frombuffer(key).reshape(L, 2)
+    neighbours = np.frombuffer(nkey, dtype=np.int64).reshape(n, -1)
+    cells = {"tilt": np.zeros((L, 2)), "K": np.zeros((L, 2, 2)), "g": np.zeros((L, 2)), "ln_a": np.zeros(L),
+             "lit": np.ones(L, bool)}
+    out = cell_shift(centres[:n], cells, centres, neighbours, sensor, wavelength_nm)
+    out.setflags(write=False)
+    return out
+
+
+def cell_reference_shift(sensor: Sensor, wavelength_nm: float, lit_centres: np.ndarray,
+                         neighbours: np.ndarray) -> np.ndarray:
+    """``cell_shift`` (n, 2) mm of the factory reference: a uniform plane wave at normal incidence over the lit lenslets."""
+    c = np.ascontiguousarray(lit_centres, dtype=float)
+    nb = np.ascontiguousarray(neighbours, dtype=np.int64)
+    return _cell_reference_shift(sensor, wavelength_nm, c.tobytes(), len(c), nb.tobytes(), len(nb))
+
+
+def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray,
+                          lit_centres: np.ndarray, neighbours: np.ndarray, sensor: Sensor, wavelength_nm: float,
+                          windows: np.ndarray | None = None, return_windows: bool = False):
+    """Centroid slopes (..., n, 2) of the n pupil lenslets from the quadratures sq (..., L, q, 2), wi (..., L, q) of all
+    L lit lenslets (the pupil's first, ``lit_lenslets``), against the factory reference: each window sees its own and
+    its neighbours' fields, each lenslet's from its own rays (``cell_shift``), so its irradiance weighting, window
+    truncation, cross-talk and whole-pixel placement come from one coherent computation:
+    tilt (1 + p^2 / 6 f^2) + (shift - reference shift) / f (the gain as in ``crosstalk_slopes``)."""
+    n = neighbours.shape[0]
+    tilt, K, g, ln_a, lit = cell_fields(sq, wi, offsets, weights, sensor.pitch_mm)
+    cells = {"tilt": tilt, "K": K, "g": g, "ln_a": ln_a, "lit": lit}
+    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    s = tilt[..., :n, :]
+    spot = lit_centres[:n] + f * s
+    d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
+                       return_windows=True)
+    ref = cell_reference_shift(sensor, wavelength_nm, lit_centres, neighbours)
+    out = s * (1.0 + p * p / (6.0 * f * f)) + (d - ref) / f
+    return (out, st) if return_windows else out

@@ -34,7 +34,8 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .centroid import (LOCAL_INPUTS, centroid_slope_derivatives, centroid_slopes, crosstalk_slope_derivatives, crosstalk_slopes,
+from .centroid import (LOCAL_INPUTS, cell_crosstalk_slopes, centroid_slope_derivatives, centroid_slopes,
+                       crosstalk_slope_derivatives, crosstalk_slopes, lit_lenslets,
                        quadrature_rule, window_gain)
 from .sensor_range import SensorRange, range_use, summarize_range
 from .trace import (AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, aimed_tangents,
@@ -214,6 +215,9 @@ class ZernikeResult:
             )
 
 
+_CELL_DIRECTIONS = 4  # directions per complex-step pass of the 'cells' model (bounds its memory)
+
+
 class ForwardModel:
     """z = h(x, p) for one bench and lens: the posed lens -> SH Zernike coefficients.
 
@@ -240,9 +244,16 @@ class ForwardModel:
         off, w = quadrature_rule(bench.sensor.subaperture_quadrature)
         self.quad_offsets, self.quad_weights = off, w
         self.window_gain = window_gain(bench.sensor, bench.laser.wavelength_nm)
-        # aim targets: the quadrature points of every lenslet, lenslet-major (n * q, 2)
+        # the traced lenslets: the pupil's, and with the 'cells' cross-talk model every lenslet lit within its
+        # rings of the pupil (their fields reach the pupil's windows), the pupil's first (``lit_lenslets``)
+        if self._cells:
+            self.lit_centres, self.lit_neighbours = lit_lenslets(bench.sensor, self.pupil.centres)
+        else:
+            self.lit_centres, self.lit_neighbours = self.pupil.centres, None
+        self.n_traced = len(self.lit_centres)
+        # aim targets: the quadrature points of every traced lenslet, lenslet-major (L * q, 2)
         self.targets = np.ascontiguousarray(
-            (self.pupil.centres[:, None, :] + bench.sensor.pitch_mm * off[None, :, :]).reshape(-1, 2))
+            (self.lit_centres[:, None, :] + bench.sensor.pitch_mm * off[None, :, :]).reshape(-1, 2))
 
     @property
     def modes(self) -> np.ndarray:
@@ -275,7 +286,7 @@ class ForwardModel:
         P, q = uv.shape[0], self.quad_weights.size
         with np.errstate(divide="ignore", invalid="ignore"):
             irr = self._beam(uv) / det
-        n_l = self.pupil.n_lenslets  # explicit: P may be 0
+        n_l = self.n_traced  # explicit: P may be 0
         return {"poses": poses, "uv": uv, "sq": sq.reshape(P, n_l, q, 2), "st": st.reshape(P, n_l, q), "irr": irr,
                 "n": n}
 
@@ -303,11 +314,23 @@ class ForwardModel:
         sensor = self.bench.sensor
         return sensor.crosstalk == "none" or sensor.centroid_window_px == 0
 
+    @property
+    def _cells(self) -> bool:
+        """The 'cells' cross-talk model: every window sees the fields of the lit lenslets around it, each from its
+        own rays (``centroid.cell_crosstalk_slopes``)."""
+        return self.bench.sensor.crosstalk == "cells" and not self._own_centroid
+
     def _centroids(self, sq, wi, windows=None, return_windows: bool = False):
+        """Centroid slopes (..., n, 2) of the pupil lenslets from the traced lenslets' quadratures sq (..., L, q, 2)
+        and weights wi (..., L, q)."""
+        sensor = self.bench.sensor
+        if self._cells:
+            return cell_crosstalk_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.lit_centres,
+                                         self.lit_neighbours, sensor, self.bench.laser.wavelength_nm, windows=windows,
+                                         return_windows=return_windows)
         s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
         if self._own_centroid:
             return (s, None) if return_windows else s
-        sensor = self.bench.sensor
         return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
                                 self.bench.laser.wavelength_nm, windows=windows, return_windows=return_windows)
 
@@ -321,8 +344,21 @@ class ForwardModel:
         (an iteration Jacobian's: the cross-talk's part of the derivative, a few percent of the
         information, costs 8 kernel passes)."""
         if self._own_centroid or not exact:
-            ds = centroid_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain)
+            n = self.pupil.n_lenslets
+            ds = centroid_slope_derivatives(sq[:, :n], wi[:, :n], dsq[:, :n], dwi[:, :n], self.quad_offsets,
+                                            self.quad_weights, self.window_gain)
             return np.moveaxis(ds, -1, 1)
+        if self._cells:  # a window sees its neighbours' inputs too: a complex step along each direction
+            eps, d = 1e-30, dsq.shape[-1]
+            out = []
+            for j in range(0, d, _CELL_DIRECTIONS):
+                k = slice(j, j + _CELL_DIRECTIONS)
+                sq_c = sq[:, None] + 1j * eps * np.moveaxis(dsq[..., k], -1, 1)  # (P, d', L, q, 2)
+                wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi[..., k], -1, 1)
+                w_ = None if windows is None else np.broadcast_to(windows[:, None], (sq.shape[0], sq_c.shape[1])
+                                                                  + windows.shape[1:])
+                out.append(self._centroids(sq_c, wi_c, w_).imag / eps)
+            return np.concatenate(out, axis=1)
         if dsq.shape[-1] > LOCAL_INPUTS:  # more directions than the kernel has inputs: chain through them
             ds = crosstalk_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain,
                                              self.pupil.centres, self.bench.sensor, self.bench.laser.wavelength_nm,
@@ -335,10 +371,11 @@ class ForwardModel:
 
     def _zernike(self, a: dict, windows=None) -> ZernikeResult:
         sensor = self.bench.sensor
+        n = self.pupil.n_lenslets
         wi = self._weights(a)
-        irr_mean = wi.sum(axis=2)
+        irr_mean = wi[:, :n].sum(axis=2)
         slopes, windows = self._centroids(a["sq"], wi, windows, return_windows=True)
-        status = a["st"].max(axis=2)  # OK (0) only if every quadrature ray is OK
+        status = a["st"][:, :n].max(axis=2)  # OK (0) only if every quadrature ray is OK
         slopes = np.where((status == OK)[..., None] & (irr_mean > 0)[..., None], slopes, 0.0)
         thr = sensor.irradiance_threshold
         use = range_use(sensor, self.bench.laser.wavelength_nm, self.pupil.centres, self.pupil.neighbours, slopes)
@@ -390,7 +427,7 @@ class ForwardModel:
             t = derivatives(uv)
             landed = (t.status[:P] == OK) & np.all(np.abs(t.xy[:P] - self.targets) < AIM_TOL, axis=-1)
             if landed.all():  # the aim's record, from the first trace (irradiance once det J is known)
-                n_l, q = self.pupil.n_lenslets, self.quad_weights.size
+                n_l, q = self.n_traced, self.quad_weights.size
                 a = {"poses": x, "uv": uv, "sq": t.slopes[:P].reshape(P, n_l, q, 2),
                      "st": t.status[:P].reshape(P, n_l, q), "irr": None, "n": P * N}
             else:

@@ -1,0 +1,131 @@
+"""The 'cells' cross-talk model (optics/centroid.py: every window sees the fields of the lit lenslets around it,
+each from its own rays; issue 21): its kernel against a brute-force Fresnel integral, its Jacobian against
+central differences, a noise-free pose estimate on it, and the model against the full-array physical reference."""
+
+import numpy as np
+import pytest
+
+import lensforge as lf
+from lensforge.optics import centroid
+from lensforge.optics.bench import Sensor
+from lensforge.optics.shack_hartmann import ForwardModel
+
+
+def _gl(n):
+    x, w = np.polynomial.legendre.leggauss(n)
+    return 0.5 * x, 0.5 * w
+
+
+def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120):
+    """Window centroid of pupil lenslet i: every lit lenslet b of its block contributes the Fresnel integral of its
+    own field, amplitude exp(ln_a_b + g_b . u / 2) and phase k (W_b + s_b . u + u K_b u / 2) over its square
+    cell (u = X - c_b), W_b - W_i by the two-point Hermite rule on the slopes and curvatures, through its
+    lenslet's focusing phase, summed node by node (no aperture moments, no series)."""
+    f, p, pix, Wpx = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, sensor.centroid_window_px
+    k = 2 * np.pi / (wl_nm * 1e-6)
+    s, K, g, ln_a = cells["tilt"], cells["K"], cells["g"], cells["ln_a"]
+    spot = centres[i] + f * s[i]
+    edge0 = sensor.camera_offset_px * pix
+    st = np.floor((spot - edge0) / pix - 0.5 * Wpx + 0.5)
+    xs = edge0 + (st[:, None] + (np.arange(Wpx * sub) + 0.5)[None] / sub) * pix  # (2, S) camera samples
+    t, w = _gl(nodes)
+    U = np.zeros((Wpx * sub, Wpx * sub), complex)
+    Ki = 0.5 * (K[i] + K[i].T)
+    for b in neighbours[i]:
+        if b < 0:
+            continue
+        c = centres[b]
+        pe = c - centres[i]
+        Kb = 0.5 * (K[b] + K[b].T)
+        W_b = 0.5 * pe @ (s[i] + s[b]) + pe @ (Ki - Kb) @ pe / 12.0
+        ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
+        phase = W_b + s[b, 0] * ux + s[b, 1] * uy + 0.5 * (Kb[0, 0] * ux * ux + 2 * Kb[0, 1] * ux * uy + Kb[1, 1] * uy * uy)
+        E = np.exp(ln_a[b] + 0.5 * (g[b, 0] * ux + g[b, 1] * uy) + 1j * k * phase) * np.outer(w, w) * p * p
+        # Fresnel: the field exp(-i k |X - c|^2 / 2f) E(X) seen at x; the factor exp(i k |x|^2 / 2f) common to all
+        Gx = np.exp(1j * k * np.outer(c[0] - xs[0], c[0] + p * t) / f)
+        Gy = np.exp(1j * k * np.outer(c[1] - xs[1], c[1] + p * t) / f)
+        U += np.exp(-1j * k * (c @ c) / (2 * f)) * (Gy @ E @ Gx.T)
+    inten = (np.abs(U) ** 2).reshape(Wpx, sub, Wpx, sub).sum(axis=(1, 3))
+    pc = edge0 + (st[:, None] + np.arange(Wpx)[None] + 0.5) * pix
+    return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / inten.sum() - spot
+
+
+def test_cells_kernel_is_the_blocks_fresnel_integral():
+    # a pupil of 9 lenslets; every lit lenslet with its own tilt (up to 60 mrad), curvature (alpha up to ~6, K_xy
+    # included), irradiance gradient (up to e^0.5 across a cell) and amplitude; one lenslet dark
+    sensor = Sensor()
+    rng = np.random.default_rng(5)
+    p = sensor.pitch_mm
+    pupil = p * np.array([[a, b] for b in (-1, 0, 1) for a in (-1, 0, 1)], float)
+    centres, neighbours = centroid.lit_lenslets(sensor, pupil, ring=2)
+    L = len(centres)
+    K = rng.uniform(-0.03, 0.03, (L, 2, 2))
+    K = 0.5 * (K + np.swapaxes(K, 1, 2))
+    cells = {"tilt": 0.01 + rng.uniform(-0.05, 0.05, (L, 2)) * 0.3 + centres @ np.array([[0.02, 0.0], [0.0, -0.015]]),
+             "K": K, "g": rng.uniform(-3, 3, (L, 2)), "ln_a": rng.uniform(-0.3, 0.3, L), "lit": np.ones(L, bool)}
+    cells["ln_a"][L - 3] = -np.inf
+    cells["lit"][L - 3] = False
+    n = len(pupil)
+    old = centroid.CELL_SUB
+    spot = centres[:n] + sensor.lenslet_focal_mm * cells["tilt"][:n]
+    got = centroid.cell_shift(spot, {**cells, "ln_a": np.where(cells["lit"], cells["ln_a"], 0.0)}, centres,
+                              neighbours, sensor, 532.0, iterations=0)
+    assert centroid.CELL_SUB == old
+    for i in (0, 4, 8):
+        want = _brute_force_window(i, {**cells, "ln_a": np.where(cells["lit"], cells["ln_a"], -np.inf)}, centres,
+                                   neighbours, sensor, 532.0, centroid.CELL_SUB)
+        scale = np.abs(want).max()
+        assert scale > 2e-5  # the effect is there: > 20 nm
+        np.testing.assert_allclose(got[i], want, rtol=0, atol=1e-6 * scale + 1e-12)
+
+
+def test_lit_lenslets_are_the_pupils_rings():
+    sensor = Sensor()
+    pupil = lf.Bench.default()  # the default pupil's lenslets
+    model = ForwardModel(pupil.replace(sensor={"crosstalk": "cells"}), lf.paper_lens("polynomial"))
+    c, nb = model.lit_centres, model.lit_neighbours
+    n = model.pupil.n_lenslets
+    np.testing.assert_array_equal(c[:n], model.pupil.centres)
+    ring = centroid.CELL_RING
+    assert nb.shape == (n, (2 * ring + 1) ** 2)
+    # every block entry is the lenslet at its offset; every lit lenslet is within `ring` rings of the pupil
+    off = sensor.pitch_mm * np.stack(np.meshgrid(np.arange(-ring, ring + 1), np.arange(-ring, ring + 1),
+                                                 indexing="xy"), -1).reshape(-1, 2)
+    np.testing.assert_allclose(c[nb] - c[:n, None, :], np.broadcast_to(off, nb.shape + (2,)), atol=1e-12)
+    d = np.abs(c[:, None, :] - c[None, :n, :]).max(axis=2).min(axis=1)
+    assert d.max() <= ring * sensor.pitch_mm + 1e-9 and len(np.unique(np.round(c / 1e-6), axis=0)) == len(c)
+
+
+@pytest.fixture(scope="module")
+def small_cells_model():
+    b = lf.Bench.default().replace(sensor={"crosstalk": "cells", "pupil_radius_mm": 0.5, "zernike_order": 3})
+    return ForwardModel(b, lf.paper_lens("polynomial"))
+
+
+def test_cells_model_jacobian_is_exact(small_cells_model):
+    # the complex step along each direction against central differences of the model, the windows frozen at
+    # the value's (steps small enough for the frozen windows' smooth h)
+    model = small_cells_model
+    x0 = np.array([0.1, -0.2, 0.3, 0.01, -0.02, 0.015])
+    J, _, res = model.jacobians(x0[None])
+    h = np.array([1e-5] * 3 + [1e-6] * 3)
+    fd = np.stack([(model.evaluate(x0 + e * hi, windows=res.windows).z[0]
+                    - model.evaluate(x0 - e * hi, windows=res.windows).z[0]) / (2 * hi) for e, hi in zip(np.eye(6), h)],
+                  axis=1)
+    Lw = model.whitener
+    err = np.linalg.norm(Lw @ (J[0] - fd), axis=0) / np.linalg.norm(Lw @ fd, axis=0)
+    assert np.all(err < 1e-5), err
+
+
+@pytest.mark.slow
+def test_pose_estimate_on_the_cells_model_is_exact_without_noise(small_cells_model):
+    # the LM iterates on the own centroid's Jacobians and finishes on the exact ones: noise-free data give the pose
+    from lensforge.calibration.pose_estimation import estimate_poses_batch
+
+    model = small_cells_model
+    x_true = np.array([[0.2, -0.1, 0.4, np.radians(0.8), np.radians(-0.5), np.radians(1.5)]])
+    z = model.evaluate(x_true, check_range=False).z
+    est = estimate_poses_batch(model, z, x_true + np.array([[0.05, -0.04, 0.1, 2e-3, -1.5e-3, 4e-3]]))
+    assert est.converged[0] and est.status[0] in ("converged", "flat")
+    sig = np.sqrt(np.diag(est.cov[0]))
+    assert np.all(np.abs(est.poses[0] - x_true[0]) < 1e-4 * sig), (est.poses[0] - x_true[0]) / sig
