@@ -85,7 +85,7 @@ class PhysicalSensor:
     aperture: str = "square"
     lenslet_diameter_mm: float = 0.140
     samples_per_pixel: int = 4
-    margin_lenslets: int = 5
+    margin_lenslets: int = 3
     pad_mm: float = 0.5
     potential_degree: int = 14
     ray_grid: int = 160
