@@ -345,13 +345,13 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     xi_ = np.ascontiguousarray(np.moveaxis(ai[..., 0, :], 2, -1).reshape(m_, -1, S))
     ur = yrT @ xr - yiT @ xi_  # (m, S_y, S_x)
     ui = yrT @ xi_ + yiT @ xr
-    return _pixel_centroid(ur, ui, st, sensor, sub, W)
+    return _pixel_centroid(ur, ui, st, sensor, sub)
 
 
-def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sensor, sub: int, W: int) -> np.ndarray:
+def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sensor, sub: int) -> np.ndarray:
     """Centroid (m, 2) mm of the field (ur + i ui) (m, S_y, S_x) sampled sub x sub per pixel in the windows starting
     at pixels st (m, 2), ``centroid_threshold`` x the window's peak cut."""
-    pix = sensor.pixel_mm
+    pix, W = sensor.pixel_mm, int(sensor.centroid_window_px)
     cut = float(sensor.centroid_threshold)
     edge0 = float(sensor.camera_offset_px) * pix
     m_ = ur.shape[0]
@@ -447,7 +447,7 @@ def _separable_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: S
     yr = pw * (ir_re * xr[..., 1, :] - ir_im * xi_[..., 1, :])  # (m, S_y, R+1): (i a)^r / r! Y_r
     yi = pw * (ir_re * xi_[..., 1, :] + ir_im * xr[..., 1, :])
     xr, xi_ = np.swapaxes(xr[..., 0, :], 1, 2), np.swapaxes(xi_[..., 0, :], 1, 2)  # (m, R+1, S_x)
-    return _pixel_centroid(yr @ xr - yi @ xi_, yr @ xi_ + yi @ xr, st, sensor, sub, W)
+    return _pixel_centroid(yr @ xr - yi @ xi_, yr @ xi_ + yi @ xr, st, sensor, sub)
 
 
 @lru_cache(maxsize=16)
