@@ -81,8 +81,8 @@ def test_cells_kernel_is_the_blocks_fresnel_integral():
 
 def test_lit_lenslets_are_the_pupils_rings():
     sensor = Sensor()
-    pupil = lf.Bench.default()  # the default pupil's lenslets
-    model = ForwardModel(pupil.replace(sensor={"crosstalk": "cells"}), lf.paper_lens("polynomial"))
+    bench = lf.Bench.default()  # the default pupil's lenslets
+    model = ForwardModel(bench.replace(sensor={"crosstalk": "cells"}), lf.paper_lens("polynomial"))
     c, nb = model.lit_centres, model.lit_neighbours
     n = model.pupil.n_lenslets
     np.testing.assert_array_equal(c[:n], model.pupil.centres)
@@ -129,3 +129,57 @@ def test_pose_estimate_on_the_cells_model_is_exact_without_noise(small_cells_mod
     assert est.converged[0] and est.status[0] in ("converged", "flat")
     sig = np.sqrt(np.diag(est.cov[0]))
     assert np.all(np.abs(est.poses[0] - x_true[0]) < 1e-4 * sig), (est.poses[0] - x_true[0]) / sig
+
+
+# the full-array physical reference at the settings the 'cells' figures were measured with: 4 field samples per
+# pixel, 5 lit rings beyond the pupil (3 truncates the cross-talk at an unlucky ring: the model lights 4)
+REFERENCE = dict(samples_per_pixel=4, margin_lenslets=5)
+
+
+def _sigma_off(lens_name: str, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """max over modes of |physical - model| / sigma per pose: (the own-centroid model, the 'cells' model)."""
+    from lensforge.verification.physical_sensor import PhysicalSensor, physical_measure
+
+    bench = lf.Bench.default()
+    lens = lf.paper_lens(lens_name)
+    own, cells = ForwardModel(bench, lens), ForwardModel(bench.replace(sensor={"crosstalk": "cells"}), lens)
+    z_phys = np.stack([physical_measure(own, x, PhysicalSensor(**REFERENCE)).z for x in poses])
+    sig = np.sqrt(np.diag(own.noise_cov))
+    return tuple(np.abs((z_phys - m.evaluate(poses, check_range=False).z) / sig).max(axis=1) for m in (own, cells))
+
+
+def test_cells_model_within_one_sigma_of_the_physical_sensor_at_nominal():
+    # the paper's polynomial lens at nominal: the own-centroid model is ~53 sigma off (Z4, cross-talk), 'cells'
+    # 0.87 sigma (measured)
+    old, new = _sigma_off("polynomial", np.zeros((1, 6)))
+    assert old[0] > 30 and new[0] < 1.0, (old, new)
+
+
+@pytest.fixture(scope="module")
+def plan_pose_table():
+    """Per lens: (own, cells) max |dz| / sigma at nominal and the 3 most extreme poses of its calibration plan."""
+    from lensforge.verification.session_sim import extreme_poses
+
+    bench = lf.Bench.default()
+    return {name: _sigma_off(name, extreme_poses(lf.paper_lens(name), bench, 3))
+            for name in ("polynomial", "extended_polynomial", "zernike")}
+
+
+# measured worst mode over the 4 poses (issue 21): polynomial 1.5, extended polynomial 1.4, Zernike 3.1 sigma (all
+# Z4: the model reads ~1e-4 more defocus than the reference on every lens, cause not found); the own centroid 50-155
+MEASURED_WORST = {"polynomial": 1.5, "extended_polynomial": 1.4, "zernike": 3.1}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(MEASURED_WORST))
+def test_cells_model_at_the_plans_extreme_poses(plan_pose_table, name):
+    old, new = plan_pose_table[name]
+    assert np.all(old > 30), old
+    assert new.max() < 1.15 * MEASURED_WORST[name], new
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 21: 'cells' leaves Z4 at 1.2-1.5 sigma (polynomial lenses) and 2.0-3.1 "
+                   "sigma (Zernike lens) at the plan's extreme poses")
+def test_cells_model_within_one_sigma_at_the_plans_extreme_poses(plan_pose_table):
+    assert max(new.max() for _, new in plan_pose_table.values()) < 1.0

@@ -464,13 +464,18 @@ def reference_shift(sensor: Sensor, wavelength_nm: float, centres: np.ndarray) -
     return _reference_shift(sensor, wavelength_nm, c.tobytes(), len(c))
 
 
+def _slope_gradient(sq: np.ndarray, offsets: np.ndarray, weights: np.ndarray, pitch: float) -> np.ndarray:
+    """K (..., 2, 2) = d s_i / d x_j (1/mm): the least-squares plane in the slopes sq (..., q, 2) over the rule."""
+    m2 = weights @ offsets**2
+    return np.einsum("q,qj,...qi->...ij", weights, offsets, sq) / (m2 * pitch)[None, :]
+
+
 def local_field(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray,
                 pitch: float) -> tuple[np.ndarray, np.ndarray]:
     """(K (..., 2, 2) slope gradients d s_i / d x_j in 1/mm, gradient of ln I (..., 2) in 1/mm) of one
     lenslet's quadrature: least-squares over the rule (offsets in pitches); the irradiance centroid
     xi of I ~ exp(g . x) over the square is g p^2 / 12."""
-    m2 = weights @ offsets**2
-    K = np.einsum("q,qj,...qi->...ij", weights, offsets, sq) / (m2 * pitch)[None, :]
+    K = _slope_gradient(sq, offsets, weights, pitch)
     with np.errstate(divide="ignore", invalid="ignore"):
         centroid = np.einsum("...q,qk->...k", wi, offsets) / wi.sum(axis=-1)[..., None]
     return K, 12.0 * centroid / pitch
@@ -555,13 +560,15 @@ def lit_lenslets(sensor: Sensor, pupil_centres: np.ndarray, ring: int = CELL_RIN
     keys = grid[:, 0] * n_side + grid[:, 1]
     extra = np.setdiff1d(np.unique(cand[:, 0] * n_side + cand[:, 1]), keys)
     allk = np.concatenate([keys, extra])
-    lookup = {int(v): i for i, v in enumerate(allk)}
     ij = np.stack([allk // n_side, allk % n_side], axis=1)
     centres = p * (ij - 0.5 * (n_side - 1))
     nb = grid[:, None, :] + off[None]
     inside = np.all((nb >= 0) & (nb < n_side), axis=2)
     nbk = nb[..., 0] * n_side + nb[..., 1]
-    neighbours = np.where(inside, np.vectorize(lambda v: lookup.get(int(v), -1))(nbk), -1)
+    order = np.argsort(allk)
+    at = np.minimum(np.searchsorted(allk, nbk, sorter=order), len(allk) - 1)
+    found = inside & (allk[order[at]] == nbk)
+    neighbours = np.where(found, order[at], -1)
     centres.setflags(write=False)
     neighbours.setflags(write=False)
     return centres, neighbours
@@ -577,7 +584,7 @@ def cell_fields(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np
     ln_i = np.log(safe / weights)
     m2 = weights @ offsets**2
     tilt = np.einsum("q,...qk->...k", weights, sq)
-    K = np.einsum("q,qj,...qi->...ij", weights, offsets, sq) / (m2 * pitch)[None, :]
+    K = _slope_gradient(sq, offsets, weights, pitch)
     g = np.einsum("q,qj,...q->...j", weights, offsets, ln_i) / (m2 * pitch)
     ln_a = 0.5 * np.einsum("q,...q->...", weights, ln_i)
     z = np.zeros((), dtype=tilt.dtype)

@@ -333,6 +333,14 @@ def summarise_sessions(outcomes) -> dict:
             "failed": [o["failed"] for o in outcomes if o["failed"] is not None]}
 
 
+def extreme_poses(lens, bench: Bench, k: int) -> np.ndarray:
+    """Nominal plus the k poses of the 12-pose calibration plan (seed 0, lens known) farthest from nominal in the
+    bench's pose scales (k + 1, 6): where a sensor model is checked against the physical reference."""
+    x = np.asarray(plan(lens, bench=bench, n=12, seed=0, tolerances=None).x)
+    order = np.argsort(-np.max(np.abs(x) / np.asarray(bench.pose_scales), axis=1))
+    return np.vstack([np.zeros(6), x[order[:k]]])
+
+
 def check_sessions(design, n_sessions: int, *, seed: int = 0, tolerances=None, bench: Bench | None = None,
                    robot: RobotModel | str | None = None, n: int = 12, method: str = "joint",
                    calibration_tolerances="default", progress=None, plan_seed: int | None = None,
