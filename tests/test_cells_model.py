@@ -18,12 +18,12 @@ def _gl(n):
 
 def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120):
     """Window centroid of pupil lenslet i: every lit lenslet b of its block contributes the Fresnel integral of its
-    own field, amplitude exp(ln_a_b + g_b . u / 2) and phase k (W_b + s_b . u + u K_b u / 2) over its square
+    own field, amplitude exp(ln_a_b + g_b . u / 2 + (h_bx u_x^2 + h_by u_y^2) / 4) and phase k (W_b + s_b . u + u K_b u / 2) over its square
     cell (u = X - c_b), W_b - W_i by the two-point Hermite rule on the slopes and curvatures, through its
     lenslet's focusing phase, summed node by node (no aperture moments, no series)."""
     f, p, pix, Wpx = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, sensor.centroid_window_px
     k = 2 * np.pi / (wl_nm * 1e-6)
-    s, K, g, ln_a = cells["tilt"], cells["K"], cells["g"], cells["ln_a"]
+    s, K, g, h, ln_a = cells["tilt"], cells["K"], cells["g"], cells["h"], cells["ln_a"]
     spot = centres[i] + f * s[i]
     edge0 = sensor.camera_offset_px * pix
     st = np.floor((spot - edge0) / pix - 0.5 * Wpx + 0.5)
@@ -40,7 +40,8 @@ def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes
         W_b = 0.5 * pe @ (s[i] + s[b]) + pe @ (Ki - Kb) @ pe / 12.0
         ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
         phase = W_b + s[b, 0] * ux + s[b, 1] * uy + 0.5 * (Kb[0, 0] * ux * ux + 2 * Kb[0, 1] * ux * uy + Kb[1, 1] * uy * uy)
-        E = np.exp(ln_a[b] + 0.5 * (g[b, 0] * ux + g[b, 1] * uy) + 1j * k * phase) * np.outer(w, w) * p * p
+        lnA = ln_a[b] + 0.5 * (g[b, 0] * ux + g[b, 1] * uy) + 0.25 * (h[b, 0] * ux * ux + h[b, 1] * uy * uy)
+        E = np.exp(lnA + 1j * k * phase) * np.outer(w, w) * p * p
         # Fresnel: the field exp(-i k |X - c|^2 / 2f) E(X) seen at x; the factor exp(i k |x|^2 / 2f) common to all
         Gx = np.exp(1j * k * np.outer(c[0] - xs[0], c[0] + p * t) / f)
         Gy = np.exp(1j * k * np.outer(c[1] - xs[1], c[1] + p * t) / f)
@@ -52,7 +53,8 @@ def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes
 
 def test_cells_kernel_is_the_blocks_fresnel_integral():
     # a pupil of 9 lenslets; every lit lenslet with its own tilt (up to 60 mrad), curvature (alpha up to ~6, K_xy
-    # included), irradiance gradient (up to e^0.5 across a cell) and amplitude; one lenslet dark
+    # included), irradiance gradient (up to e^0.5 across a cell) and curvature (|delta| <= 0.11) and amplitude; one
+    # lenslet dark
     sensor = Sensor()
     rng = np.random.default_rng(5)
     p = sensor.pitch_mm
@@ -62,7 +64,8 @@ def test_cells_kernel_is_the_blocks_fresnel_integral():
     K = rng.uniform(-0.03, 0.03, (L, 2, 2))
     K = 0.5 * (K + np.swapaxes(K, 1, 2))
     cells = {"tilt": 0.01 + rng.uniform(-0.05, 0.05, (L, 2)) * 0.3 + centres @ np.array([[0.02, 0.0], [0.0, -0.015]]),
-             "K": K, "g": rng.uniform(-3, 3, (L, 2)), "ln_a": rng.uniform(-0.3, 0.3, L), "lit": np.ones(L, bool)}
+             "K": K, "g": rng.uniform(-3, 3, (L, 2)), "h": rng.uniform(-20, 20, (L, 2)), "ln_a": rng.uniform(-0.3, 0.3, L),
+             "lit": np.ones(L, bool)}
     cells["ln_a"][L - 3] = -np.inf
     cells["lit"][L - 3] = False
     n = len(pupil)
@@ -94,6 +97,25 @@ def test_lit_lenslets_are_the_pupils_rings():
     np.testing.assert_allclose(c[nb] - c[:n, None, :], np.broadcast_to(off, nb.shape + (2,)), atol=1e-12)
     d = np.abs(c[:, None, :] - c[None, :n, :]).max(axis=2).min(axis=1)
     assert d.max() <= ring * sensor.pitch_mm + 1e-9 and len(np.unique(np.round(c / 1e-6), axis=0)) == len(c)
+
+
+def test_ln_i_curvature_of_a_gaussian_beam_is_exact():
+    # ln I = -2 |x - x0|^2 / w^2 has h = -4 / w^2 on both axes: central differences of the cells' gradients are exact
+    # inside the lit region and one-sided ones at its edge; a dark lenslet's neighbours fall back to one side
+    sensor = Sensor()
+    p = sensor.pitch_mm
+    centres, _ = centroid.lit_lenslets(sensor, p * np.array([[0.0, 0.0], [1.0, 0.0]]), ring=2)
+    w, x0 = 1.3, np.array([0.1, -0.05])
+    g = -4.0 * (centres - x0) / w**2
+    lit = np.ones(len(centres), bool)
+    lit[3] = False
+    nb = centroid._axis_neighbours(centres, p)
+    h = centroid.ln_i_curvature(g, lit, nb, p)
+    seen = np.any((nb >= 0) & lit[np.maximum(nb, 0)], axis=2)  # (L, 2): a lit neighbour along the axis
+    assert seen[lit].mean() > 0.95 and not seen[lit].all()  # the dark lenslet leaves one with none along an axis
+    np.testing.assert_allclose(h[lit], np.where(seen[lit], -4.0 / w**2, 0.0), rtol=1e-12)
+    isolated = centroid.ln_i_curvature(g[:1], np.ones(1, bool), centroid._axis_neighbours(centres[:1], p), p)
+    assert np.all(isolated == 0.0)
 
 
 @pytest.fixture(scope="module")

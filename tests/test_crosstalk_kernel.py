@@ -42,6 +42,27 @@ def test_aperture_moments_and_their_derivatives_are_the_integrals():
     assert np.all(im == 0)
 
 
+def test_aperture_moments_with_an_amplitude_gradient_and_curvature_are_the_integrals():
+    # M_r = int t^r exp(gamma t + delta t^2 + i alpha t^2 - i beta t) dt: the amplitude's gradient (up to e^2.6 across
+    # a sub-aperture) and curvature (the Gaussian beam's ln I curvature is ~0.01), with their complex-step jets
+    t, w = _gl(400)
+    beta = np.array([0.0, 0.3, 9.99, 10.01, -47.0, 170.0])
+    R = 8
+    for alpha in (0.0, -1.0, 2.5, 12.0):
+        for gamma, delta in ((0.0, 0.05), (1.3, 0.0), (-1.0, 0.05), (0.5, -0.2)):
+            E = np.exp((gamma * t + delta * t**2)[None] + 1j * alpha * t[None] ** 2 - 1j * beta[:, None] * t[None])
+            ref = np.stack([(E * t**r) @ w for r in range(R + 3)], axis=-1)
+            # the series' high moments come from the upward recursion above |beta| = 10, whose rounding grows by
+            # m / |beta| a step: 1e-12 here, 1e-9 at |gamma| = 1, delta = 0.2, 1e-7 at 2 or 3, 0 (measured)
+            tol = 1e-9
+            re, im = square_aperture_moments(beta, alpha, R, gamma, delta)
+            np.testing.assert_allclose(re + 1j * im, ref[:, : R + 1], rtol=0, atol=tol)
+            h = 1e-30
+            re, im = square_aperture_moments(beta, alpha, R, gamma + 1j * h * 0.6, delta - 1j * h * 0.8)
+            got = (re.imag + 1j * im.imag) / h
+            np.testing.assert_allclose(got, 0.6 * ref[:, 1: R + 2] - 0.8 * ref[:, 2: R + 3], rtol=0, atol=tol)
+
+
 def _brute_force_centroid(spot, K, g, sensor, wl_nm, sub, nodes=160):
     """Window centroid of the 7 x 7 block's coherent field, integrated node by node over each sub-aperture:
     U(x) = sum_b exp(-i k |c_b|^2 / 2f) int_b E(X) exp(i k X . (c_b - x) / f) dX, E = exp(g.c_b / 2 + i k W),

@@ -324,8 +324,9 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
         pw = pw[:, None, :]
     xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (m, S, 2) rel. own spot
     arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (m, B, S, 2)
-    if "gam" in block:  # the irradiance gradient across each sub-aperture (its own weighting of the slope)
-        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R, block["gam"][:, :, None, :])
+    if "gam" in block:  # the irradiance gradient and curvature across each sub-aperture (its own weighting)
+        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R, block["gam"][:, :, None, :],
+                                         block["dlt"][:, :, None, :])
     else:
         mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
     ramp = (-k * np.einsum("...bi,...si->...bsi", np.broadcast_to(pe, nb_pos.shape), xs) / f)[..., None]
@@ -592,13 +593,57 @@ def cell_fields(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np
             np.where(lit, ln_a, z), lit)
 
 
+CELL_DELTA_MAX = 0.25  # the amplitude curvature kept across half a cell (a Gaussian beam's is ~0.01; aperture.py)
+
+
+def _axis_neighbours(lit_centres: np.ndarray, pitch: float) -> np.ndarray:
+    """(L, 2, 2) index of each lit lenslet's lit neighbour at -1 and +1 pitch along x (axis 0) and y (axis 1); -1:
+    none."""
+    ij = np.rint(np.asarray(lit_centres) / pitch).astype(np.int64)
+    span = 2 * int(np.abs(ij).max(initial=0)) + 3
+    key = (ij[:, 0] + span) * (2 * span) + (ij[:, 1] + span)
+    order = np.argsort(key)
+    out = np.empty((len(ij), 2, 2), dtype=np.int64)
+    for ax in range(2):
+        for side, step in enumerate((-1, 1)):
+            q = ij.copy()
+            q[:, ax] += step
+            qk = (q[:, 0] + span) * (2 * span) + (q[:, 1] + span)
+            at = np.minimum(np.searchsorted(key, qk, sorter=order), len(key) - 1)
+            out[:, ax, side] = np.where(key[order[at]] == qk, order[at], -1)
+    return out
+
+
+def ln_i_curvature(g: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float) -> np.ndarray:
+    """h (..., L, 2) = d^2 ln I / dx^2, d^2 ln I / dy^2 (1/mm^2) of each lit lenslet from its lit neighbours'
+    gradients g (..., L, 2) (the 2 x 2 rule sees no curvature in one cell): central differences, one-sided at the
+    lit region's edge, 0 for a lenslet with no lit neighbour along the axis; kept to |h| p^2 / 4 <=
+    ``CELL_DELTA_MAX``."""
+    h = []
+    for ax in range(2):
+        lo, hi = axis_nb[:, ax, 0], axis_nb[:, ax, 1]
+        has_lo = (lo >= 0) & np.take(lit, np.maximum(lo, 0), axis=-1) & lit
+        has_hi = (hi >= 0) & np.take(lit, np.maximum(hi, 0), axis=-1) & lit
+        g_lo = np.take(g[..., ax], np.maximum(lo, 0), axis=-1)
+        g_hi = np.take(g[..., ax], np.maximum(hi, 0), axis=-1)
+        g0 = g[..., ax]
+        z = np.zeros((), dtype=g.dtype)
+        d_hi, d_lo = np.where(has_hi, g_hi - g0, z), np.where(has_lo, g0 - g_lo, z)
+        n = has_hi.astype(float) + has_lo.astype(float)
+        h.append((d_hi + d_lo) / (np.maximum(n, 1.0) * pitch))
+    h = np.stack(h, axis=-1)
+    lim = 4.0 * CELL_DELTA_MAX / pitch**2
+    return np.where(np.abs(np.real(h)) > lim, np.sign(np.real(h)) * lim, h)
+
+
 def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centres: np.ndarray, sensor: Sensor,
                 wavelength_nm: float) -> dict:
     """The block of m window rows (``rows`` (m, 2): leading index, pupil lenslet) from every lit lenslet's own field
-    (``cells``: tilt, K, g, ln_a, lit, each with a flattened leading axis): per neighbour b its spot relative to the
+    (``cells``: tilt, K, g, h, ln_a, lit, each with a flattened leading axis): per neighbour b its spot relative to the
     own spot, complex amplitude (the amplitude ratio, the piston between the two centres by the two-point Hermite rule
     on their slopes and curvatures, the lenslets' focusing phase), curvature alpha (m, B, 2), cross term a_xy (m, B),
-    irradiance gradient gam (m, B, 2) and centre offset pe (m, B, 2)."""
+    amplitude gradient gam (m, B, 2) and curvature dlt (m, B, 2) across the sub-aperture (from ln I's, ``cells`` g
+    and h) and centre offset pe (m, B, 2)."""
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     k = 2 * np.pi / (wavelength_nm * 1e-6)
     lead, i = rows[:, 0], rows[:, 1]
@@ -624,7 +669,8 @@ def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centr
     amp = np.where(have & other("lit"), np.exp(other("ln_a") - own("ln_a")[:, None]), 0.0)
     alpha = 0.5 * k * p * p * np.stack([Kb[..., 0, 0], Kb[..., 1, 1]], axis=-1)
     return {"nb_pos": pe + f * (sb - s0), "cr": amp * np.cos(phase), "ci": amp * np.sin(phase), "alpha": alpha,
-            "a_xy": _cross_term(Kb, sensor, wavelength_nm), "gam": 0.5 * p * other("g"), "pe": pe}
+            "a_xy": _cross_term(Kb, sensor, wavelength_nm), "gam": 0.5 * p * other("g"), "dlt": 0.25 * p * p * other("h"),
+            "pe": pe}
 
 
 def cell_shift(spot: np.ndarray, cells: dict, lit_centres: np.ndarray, neighbours: np.ndarray, sensor: Sensor,
@@ -656,8 +702,8 @@ def cell_shift(spot: np.ndarray, cells: dict, lit_centres: np.ndarray, neighbour
 def _cell_reference_shift(sensor: Sensor, wavelength_nm: float, key: bytes, L: int, nkey: bytes, n: int) -> np.ndarray:
     centres = np.frombuffer(key).reshape(L, 2)
     neighbours = np.frombuffer(nkey, dtype=np.int64).reshape(n, -1)
-    cells = {"tilt": np.zeros((L, 2)), "K": np.zeros((L, 2, 2)), "g": np.zeros((L, 2)), "ln_a": np.zeros(L),
-             "lit": np.ones(L, bool)}
+    cells = {"tilt": np.zeros((L, 2)), "K": np.zeros((L, 2, 2)), "g": np.zeros((L, 2)), "h": np.zeros((L, 2)),
+             "ln_a": np.zeros(L), "lit": np.ones(L, bool)}
     out = cell_shift(centres[:n], cells, centres, neighbours, sensor, wavelength_nm)
     out.setflags(write=False)
     return out
@@ -680,9 +726,12 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     truncation, cross-talk and whole-pixel placement come from one coherent computation:
     tilt (1 + p^2 / 6 f^2) + (shift - reference shift) / f (the gain as in ``crosstalk_slopes``)."""
     n = neighbours.shape[0]
-    tilt, K, g, ln_a, lit = cell_fields(sq, wi, offsets, weights, sensor.pitch_mm)
-    cells = {"tilt": tilt, "K": K, "g": g, "ln_a": ln_a, "lit": lit}
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    tilt, K, g, ln_a, lit = cell_fields(sq, wi, offsets, weights, p)
+    h = ln_i_curvature(g, lit, _axis_neighbours(lit_centres, p), p)
+    # ln_a is half the rule's mean of ln I, the cell's mean: the centre's is lower by its curvature's share
+    ln_a = ln_a - 0.25 * p * p * np.einsum("k,...k->...", weights @ offsets**2, h)
+    cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit}
     s = tilt[..., :n, :]
     spot = lit_centres[:n] + f * s
     d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
