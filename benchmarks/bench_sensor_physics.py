@@ -8,6 +8,7 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
          [--focal-sigma 0.01] [--true-focal 5.226]: calibrate estimates the focal-length gain; the physical
          lenslets' true focal length differs from the bench's, which the device converts with
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
+     ... --pose-bias COMPARE.json [--models none,cells]: the poses estimated from the physical Zernikes (Table 1)
      ... --cost: S(p) with and without the cross-talk model, one physical pose
      ... --spheres: analytic spherical waves (R = +-20 ... 100 mm, uniform and Gaussian beam) through the
          physical reference against the fast models, no lens (what the cross-talk kernel misses, isolated)
@@ -114,6 +115,35 @@ def validate(path: str, design: str | None, models=("neighbours", "cells")) -> d
     return out
 
 
+def pose_bias(path: str, models=("none", "cells")) -> dict:
+    """The Table-1 analogue on the physical sensor: each pose of a compare() JSON estimated from the physical
+    reference's noise-free Zernikes with each sensor model (started at the truth); the error in units of the
+    estimate's own 1-sigma per DOF and its NEES (6 DOF; noise-free data: 0 for a model that matched the physics)."""
+    from lensforge.calibration.pose_estimation import estimate_poses_batch
+
+    d = json.load(open(path))
+    out = {}
+    for key, r in d.items():
+        label, variant = key.split("/")
+        if variant != "base":
+            continue
+        lens, bench = load_design_lens(label)
+        poses = np.array([row["pose"] for row in r["rows"]])
+        z = np.array([row["z_physical_um"] for row in r["rows"]])
+        for mname in models:
+            model = ForwardModel(bench.replace(sensor={"crosstalk": mname}), lens)
+            est = estimate_poses_batch(model, z, poses)
+            sig = np.sqrt(np.einsum("pii->pi", est.cov))
+            err = (est.poses - poses) / sig
+            nees = np.einsum("pi,pij,pj->p", est.poses - poses, np.linalg.pinv(est.cov), est.poses - poses)
+            out[f"{label}/{mname}"] = {"error_sigma": err.tolist(), "nees": nees.tolist(),
+                                      "converged": est.converged.tolist()}
+            print(f"{label:20s} {mname:6s} worst |error| / sigma per pose: "
+                  + " ".join(f"{v:6.2f}" for v in np.abs(err).max(axis=1))
+                  + " | NEES: " + " ".join(f"{v:8.2f}" for v in nees), flush=True)
+    return out
+
+
 def cost(lens_name: str = "zernike", repeat: int = 3) -> dict:
     """Wall time of one S(p) (sensitivity_from_model at nominal) and of one physical pose, per sensor model."""
     from lensforge.optics.sensitivity import sensitivity_from_model
@@ -205,6 +235,8 @@ def main(argv=None):
                     help="session study: calibrate's relative prior 1-sigma of the focal length (estimates the gain)")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk models at its poses")
     ap.add_argument("--models", default="neighbours,cells", help="--validate: the cross-talk models to score")
+    ap.add_argument("--pose-bias", default=None, help="a compare JSON: estimate its poses from the physical "
+                    "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     a = ap.parse_args(argv)
@@ -217,6 +249,12 @@ def main(argv=None):
         return
     if a.cost:
         cost()
+        return
+    if a.pose_bias:
+        models = ("none", "cells") if a.models == "neighbours,cells" else tuple(a.models.split(","))
+        out = pose_bias(a.pose_bias, models)
+        if a.json:
+            write_atomic(a.json, json.dumps(out))
         return
     if a.validate:
         out = validate(a.validate, a.design, tuple(a.models.split(",")))
