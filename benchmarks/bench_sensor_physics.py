@@ -234,7 +234,8 @@ def main(argv=None):
     ap.add_argument("--focal-sigma", type=float, default=None,
                     help="session study: calibrate's relative prior 1-sigma of the focal length (estimates the gain)")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk models at its poses")
-    ap.add_argument("--models", default="neighbours,cells", help="--validate: the cross-talk models to score")
+    ap.add_argument("--models", default=None, help="--validate: the cross-talk models to score (default "
+                    "neighbours,cells); --pose-bias: the sensor models to estimate with (default none,cells)")
     ap.add_argument("--pose-bias", default=None, help="a compare JSON: estimate its poses from the physical "
                     "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
@@ -251,13 +252,12 @@ def main(argv=None):
         cost()
         return
     if a.pose_bias:
-        models = ("none", "cells") if a.models == "neighbours,cells" else tuple(a.models.split(","))
-        out = pose_bias(a.pose_bias, models)
+        out = pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")))
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return
     if a.validate:
-        out = validate(a.validate, a.design, tuple(a.models.split(",")))
+        out = validate(a.validate, a.design, tuple((a.models or "neighbours,cells").split(",")))
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return

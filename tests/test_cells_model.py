@@ -109,12 +109,12 @@ def test_ln_i_curvature_of_a_gaussian_beam_is_exact():
     g = -4.0 * (centres - x0) / w**2
     lit = np.ones(len(centres), bool)
     lit[3] = False
-    nb = centroid._axis_neighbours(centres, p)
+    nb = centroid.axis_neighbours(centres, p)
     h = centroid.ln_i_curvature(g, lit, nb, p)
     seen = np.any((nb >= 0) & lit[np.maximum(nb, 0)], axis=2)  # (L, 2): a lit neighbour along the axis
     assert seen[lit].mean() > 0.95 and not seen[lit].all()  # the dark lenslet leaves one with none along an axis
     np.testing.assert_allclose(h[lit], np.where(seen[lit], -4.0 / w**2, 0.0), rtol=1e-12)
-    isolated = centroid.ln_i_curvature(g[:1], np.ones(1, bool), centroid._axis_neighbours(centres[:1], p), p)
+    isolated = centroid.ln_i_curvature(g[:1], np.ones(1, bool), centroid.axis_neighbours(centres[:1], p), p)
     assert np.all(isolated == 0.0)
 
 

@@ -547,6 +547,13 @@ CELL_RING = 4
 CELL_SUB = 4
 
 
+def _index_of(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Index into the distinct integers ``keys`` (K,) of each of ``query`` (...), -1 where absent."""
+    order = np.argsort(keys)
+    at = np.minimum(np.searchsorted(keys, query, sorter=order), len(keys) - 1)
+    return np.where(keys[order[at]] == query, order[at], -1)
+
+
 def lit_lenslets(sensor: Sensor, pupil_centres: np.ndarray, ring: int = CELL_RING) -> tuple[np.ndarray, np.ndarray]:
     """(centres (L, 2) mm, neighbours (n, (2 ring + 1)^2) int) of the lenslets lit around the n pupil lenslets: every
     lenslet of the sensor within ``ring`` rings (Chebyshev distance in pitches) of a pupil lenslet, the pupil's
@@ -566,10 +573,7 @@ def lit_lenslets(sensor: Sensor, pupil_centres: np.ndarray, ring: int = CELL_RIN
     nb = grid[:, None, :] + off[None]
     inside = np.all((nb >= 0) & (nb < n_side), axis=2)
     nbk = nb[..., 0] * n_side + nb[..., 1]
-    order = np.argsort(allk)
-    at = np.minimum(np.searchsorted(allk, nbk, sorter=order), len(allk) - 1)
-    found = inside & (allk[order[at]] == nbk)
-    neighbours = np.where(found, order[at], -1)
+    neighbours = np.where(inside, _index_of(allk, nbk), -1)
     centres.setflags(write=False)
     neighbours.setflags(write=False)
     return centres, neighbours
@@ -596,22 +600,17 @@ def cell_fields(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np
 CELL_DELTA_MAX = 0.25  # the amplitude curvature kept across half a cell (a Gaussian beam's is ~0.01; aperture.py)
 
 
-def _axis_neighbours(lit_centres: np.ndarray, pitch: float) -> np.ndarray:
+def axis_neighbours(lit_centres: np.ndarray, pitch: float) -> np.ndarray:
     """(L, 2, 2) index of each lit lenslet's lit neighbour at -1 and +1 pitch along x (axis 0) and y (axis 1); -1:
     none."""
     ij = np.rint(np.asarray(lit_centres) / pitch).astype(np.int64)
-    span = 2 * int(np.abs(ij).max(initial=0)) + 3
-    key = (ij[:, 0] + span) * (2 * span) + (ij[:, 1] + span)
-    order = np.argsort(key)
-    out = np.empty((len(ij), 2, 2), dtype=np.int64)
-    for ax in range(2):
-        for side, step in enumerate((-1, 1)):
-            q = ij.copy()
-            q[:, ax] += step
-            qk = (q[:, 0] + span) * (2 * span) + (q[:, 1] + span)
-            at = np.minimum(np.searchsorted(key, qk, sorter=order), len(key) - 1)
-            out[:, ax, side] = np.where(key[order[at]] == qk, order[at], -1)
-    return out
+    span = 2 * int(np.abs(ij).max(initial=0)) + 3  # keys of the grid points one pitch beyond stay distinct
+
+    def key(a):
+        return (a[..., 0] + span) * (2 * span) + (a[..., 1] + span)
+
+    steps = np.array([[[-1, 0], [1, 0]], [[0, -1], [0, 1]]])  # (axis, side, xy)
+    return _index_of(key(ij), key(ij[:, None, None, :] + steps[None]))
 
 
 def ln_i_curvature(g: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float) -> np.ndarray:
@@ -728,7 +727,7 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     n = neighbours.shape[0]
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     tilt, K, g, ln_a, lit = cell_fields(sq, wi, offsets, weights, p)
-    h = ln_i_curvature(g, lit, _axis_neighbours(lit_centres, p), p)
+    h = ln_i_curvature(g, lit, axis_neighbours(lit_centres, p), p)
     # ln_a is half the rule's mean of ln I, the cell's mean: the centre's is lower by its curvature's share
     ln_a = ln_a - 0.25 * p * p * np.einsum("k,...k->...", weights @ offsets**2, h)
     cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit}
