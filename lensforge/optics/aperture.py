@@ -82,15 +82,31 @@ def _moment_jets(beta, alpha, gamma, delta, big_re, big_im, r_max, out):
     Mi = np.empty(r_max + 3)
     cg = np.empty(n_g_max + 1)  # gamma^n / n!
     cd = np.empty(n_g_max // 2 + 1)  # delta^j / j!
-    cn = np.empty(n_g_max + 1)  # the coefficients c_n
     bn = np.empty(n_g_max + 1)  # their bound: the same sums of |gamma / 2|^(n - 2j) / (n - 2j)! |delta / 4|^j / j!
+    # the coefficients c_n and their term count of the last two (gamma, delta): a sub-aperture's pair repeats over
+    # its samples, alternating between the x and y axes (2.0x the plain moments' cost without this)
+    cn_c = np.empty((2, n_g_max + 1))
+    ng_c = np.zeros(2, dtype=np.int64)
+    key_c = np.full((2, 2), np.nan)
+    slot_next = 0
     for i in range(beta.size):
         b = beta[i]
         a = alpha[i]
         gm = gamma[i]
         dl = delta[i]
         n_g = 0
+        slot = -1
         if gm != 0.0 or dl != 0.0:
+            for s in range(2):
+                if key_c[s, 0] == gm and key_c[s, 1] == dl:
+                    slot = s
+        if slot >= 0:
+            n_g = ng_c[slot]
+            cn = cn_c[slot]
+        elif gm != 0.0 or dl != 0.0:
+            slot = slot_next
+            slot_next = 1 - slot_next
+            cn = cn_c[slot]
             cg[0], cd[0] = 1.0, 1.0
             for n in range(1, n_g_max + 1):
                 cg[n] = cg[n - 1] * gm / n
@@ -106,6 +122,8 @@ def _moment_jets(beta, alpha, gamma, delta, big_re, big_im, r_max, out):
             for n in range(1, n_g_max + 1):
                 if bn[n] >= _GRAD_TOL or (n < n_g_max and bn[n + 1] >= _GRAD_TOL):
                     n_g = n
+            ng_c[slot] = n_g
+            key_c[slot, 0], key_c[slot, 1] = gm, dl
         r_top = r_max + n_g  # plain moments wanted: 0 .. r_top + 2
         fresnel = abs(a) >= ALPHA_FRESNEL
         if fresnel:  # the upward recursion multiplies rounding by |b| / 2|a| a step: only where that stays small
