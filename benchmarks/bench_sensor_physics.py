@@ -168,13 +168,15 @@ def cost(lens_name: str = "zernike", repeat: int = 3) -> dict:
     return out
 
 
-def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin: int = 5) -> dict:
+def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin: int = 5,
+            design: str | None = None) -> dict:
     """Physical reference minus fast model (sigma per mode) for spherical waves converging to R mm after
-    the lenslets (R < 0 diverging), uniform or with the bench's Gaussian beam, over the default pupil."""
+    the lenslets (R < 0 diverging), uniform or with the bench's Gaussian beam, over the bench's pupil (the
+    design file's bench, else the default)."""
     from lensforge.optics.centroid import cell_crosstalk_slopes, centroid_slopes, crosstalk_slopes, lit_lenslets
     from lensforge.verification.physical_sensor import field_slopes, plane_field
 
-    bench = lf.Bench.default()
+    bench = load_design_lens(design)[1] if design else lf.Bench.default()
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
     out = {}
@@ -240,11 +242,13 @@ def main(argv=None):
                     "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
+    ap.add_argument("--radii", default="20,30,-30,60,100,-100", help="--spheres: the waves' radii, mm (a huge one: "
+                    "a plane wave)")
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
     if a.spheres:
-        out = spheres(spp=a.spp, margin=a.margin)
+        out = spheres(tuple(float(r) for r in a.radii.split(",")), spp=a.spp, margin=a.margin, design=a.design)
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return

@@ -32,7 +32,10 @@ trace and lensforge's Zernike fit matrix.
    the same model), 'beam' (a user reference recorded with the bench's laser and no
    lens, ``WFS_SetSpotsToUserReference``), or given centroids. Slopes are
    (centroid - reference) / f, fitted with lensforge's fit matrix.
-Cost: ~1-3 s per pose on one core (two FFTs of ~1700^2 at the defaults).
+Cost: ~1-3 s per pose on one core (two FFTs of ~1700^2 at the defaults). Memory: the (N, N) grids are built
+and reduced a chunk of rows at a time: at most the lens's and the reference's fields (complex128) and the
+transmitted field, its spectrum or the camera field (complex64) live at once, ~45 N^2 bytes (the co-designed
+bench's 3.5 mm pupil at 12 samples per pixel, N = 21,000: 19.7 GB peak; before, 10 did not fit in 24 GB).
 """
 
 from __future__ import annotations
@@ -158,6 +161,15 @@ class PhysicalMeasurement:
 
 # ----------------------------------------------------------------------------- geometry
 
+_CHUNK_ROWS = 480  # rows of an (N, N) grid built or reduced at a time: the temporaries stay ~N x 480, not N x N
+# (at the co-designed bench's 3.5 mm pupil and 8 samples per pixel, N = 14,000: a complex128 temporary is 3.1 GB)
+
+
+def _row_chunks(n: int, step: int = _CHUNK_ROWS):
+    """Slices covering 0 .. n in steps of ``step`` rows (the last one shorter)."""
+    return [slice(i, min(i + step, n)) for i in range(0, n, step)]
+
+
 def _lenslet_coords(sensor: Sensor) -> np.ndarray:
     n_side = int(np.floor(sensor.aperture_mm / sensor.pitch_mm + 1e-9))
     return sensor.pitch_mm * (np.arange(n_side) - 0.5 * (n_side - 1))
@@ -196,21 +208,23 @@ def _cell_fractions(x: np.ndarray, dx: float, centres: np.ndarray, width: float)
 
 
 def lenslet_transmission(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray,
-                         wavelength_mm: float) -> np.ndarray:
-    """Complex transmission (N, N) [y, x] of the lit lenslets on the sample grid x (mm)."""
+                         wavelength_mm: float, rows: slice = slice(None)) -> np.ndarray:
+    """Complex transmission (N, N) [y, x] of the lit lenslets on the sample grid x (mm); ``rows``: only
+    those rows (y samples) of it."""
     f, p = cfg.focal(sensor), sensor.pitch_mm
     k = 2 * np.pi / wavelength_mm
     dx = x[1] - x[0]
+    y = x[rows]
     if cfg.aperture == "square":  # separable: sum_i frac_i(x) exp(-i k (x - c_i)^2 / 2f), one sample in <= 2 cells
         ax = (_cell_fractions(x, dx, cx, p) * np.exp(-0.5j * k * (x[:, None] - cx[None, :]) ** 2 / f)).sum(axis=1)
-        ay = (_cell_fractions(x, dx, cy, p) * np.exp(-0.5j * k * (x[:, None] - cy[None, :]) ** 2 / f)).sum(axis=1)
+        ay = (_cell_fractions(y, dx, cy, p) * np.exp(-0.5j * k * (y[:, None] - cy[None, :]) ** 2 / f)).sum(axis=1)
         return ay[:, None] * ax[None, :]
     # round: each sample belongs to its nearest lenslet; area fraction inside radius R (edge linearised)
     R = 0.5 * cfg.lenslet_diameter_mm
     ix = np.clip(np.rint((x - cx[0]) / p).astype(int), 0, len(cx) - 1)
-    iy = np.clip(np.rint((x - cy[0]) / p).astype(int), 0, len(cy) - 1)
+    iy = np.clip(np.rint((y - cy[0]) / p).astype(int), 0, len(cy) - 1)
     ux = x - cx[ix]
-    uy = x - cy[iy]
+    uy = y - cy[iy]
     r = np.sqrt(ux[None, :] ** 2 + uy[:, None] ** 2)
     mask = np.clip((R - r) / dx + 0.5, 0.0, 1.0)
     return mask * np.exp(-0.5j * k * r**2 / f)
@@ -225,21 +239,27 @@ def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: flo
     n = len(x)
     dx = x[1] - x[0]
     fr = sfft.fftfreq(n, dx)
-    arg = 1.0 / wavelength_mm**2 - fr[None, :] ** 2 - fr[:, None] ** 2
-    kz = 2 * np.pi * (np.sqrt(np.clip(arg, 0.0, None)) - 1.0 / wavelength_mm)  # the plane-wave phase k f dropped
     # single precision: relative rounding ~1e-6 of the intensities, ~1e-4 um of a centroid (1/400 of its noise)
-    spec = sfft.fft2(E.astype(np.complex64), workers=1)
-    spec *= np.where(arg > 0, np.exp(1j * f * kz), 0.0).astype(np.complex64)
-    inten = np.zeros((n, n))
+    spec = sfft.fft2(np.asarray(E, dtype=np.complex64), workers=1)
+    del E  # the caller's complex64 field, when it passed a temporary
+    for c in _row_chunks(n):  # the transfer function, a chunk of rows at a time
+        arg = 1.0 / wavelength_mm**2 - fr[None, :] ** 2 - fr[c, None] ** 2
+        kz = 2 * np.pi * (np.sqrt(np.clip(arg, 0.0, None)) - 1.0 / wavelength_mm)  # the plane-wave phase k f dropped
+        spec[c] *= np.where(arg > 0, np.exp(1j * f * kz), 0.0).astype(np.complex64)
+    m = n // spp
+    inten = np.zeros((m, m))
     shifts = (np.arange(oversample) + 0.5) / oversample - 0.5  # in samples
     for sy in shifts:
         ry = np.exp(2j * np.pi * fr * sy * dx).astype(np.complex64)
         for sx in shifts:
             rx = np.exp(2j * np.pi * fr * sx * dx).astype(np.complex64)
-            U = sfft.ifft2(spec * ry[:, None] * rx[None, :], workers=1)
-            inten += U.real.astype(float) ** 2 + U.imag.astype(float) ** 2
-    m = n // spp
-    return inten.reshape(m, spp, m, spp).sum(axis=(1, 3))
+            U = sfft.ifft2(spec if sx == sy == 0.0 else spec * ry[:, None] * rx[None, :], workers=1)
+            for c in _row_chunks(n, _CHUNK_ROWS // spp * spp):  # whole pixel rows: summed into pixels per chunk
+                u = U[c]
+                inten[c.start // spp:c.stop // spp] += (u.real.astype(float) ** 2 + u.imag.astype(float) ** 2).reshape(
+                    -1, spp, m, spp).sum(axis=(1, 3))
+            del U
+    return inten
 
 
 def spot_centroids(inten: np.ndarray, x: np.ndarray, pixel: float, spp: int, start_mm: np.ndarray, window: int,
@@ -375,12 +395,15 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     mxk, myk = _box_mask(x, sensor, cx, cy)
     gx_, gy_ = (x[mxk] - centre[0]) / h[0], (x[myk] - centre[1]) / h[1]
     Vx, Vy = leg.legvander(gx_, deg), leg.legvander(gy_, deg)
-    S = Vy @ Cs @ Vx.T
-    logI = Vy @ CI @ Vx.T
     k = 2 * np.pi / lam
+    rows = _row_chunks(len(gy_))
+    log_max = max(float((Vy[c] @ CI @ Vx.T).max()) for c in rows)
     E = np.zeros((len(x), len(x)), complex)
-    lit = _lit_cells(x[mxk], x[myk], cx, cy, model, cfg)
-    E[np.ix_(myk, mxk)] = np.exp(0.5 * (logI - logI.max()) + 1j * k * S) * lit
+    box = E[myk.nonzero()[0][0]:myk.nonzero()[0][-1] + 1, mxk.nonzero()[0][0]:mxk.nonzero()[0][-1] + 1]  # a view
+    for c in rows:  # the box a chunk of rows at a time (the masks are contiguous ranges)
+        S = Vy[c] @ Cs @ Vx.T
+        logI = Vy[c] @ CI @ Vx.T
+        box[c] = np.exp(0.5 * (logI - log_max) + 1j * k * S) * _lit_cells(x[mxk], x[myk][c], cx, cy, model, cfg)
     # expected spot start: the local ray slope (tan) at each pupil lenslet centre
     c = model.pupil.centres
     _, D = _legendre_basis(deg)
@@ -448,19 +471,21 @@ def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0
     cx, cy = lit_box(sensor, cfg, centres)
     x = _grid(sensor, cfg, cx, cy)
     mxk, myk = _box_mask(x, sensor, cx, cy)
-    X, Y = np.meshgrid(x[mxk], x[myk], indexing="xy")
     tx, ty = slope
     nrm = np.sqrt(1 + tx * tx + ty * ty)
-    S = (tx * X + ty * Y) / nrm
-    if curvature_mm is not None:
-        R = float(curvature_mm)
-        S = S - np.sign(R) * (np.sqrt(X**2 + Y**2 + R * R) - abs(R))
-    amp = np.ones_like(X)
-    if gaussian:
-        w = 0.5 * bench.laser.beam_diameter_mm
-        amp = np.exp(-(X**2 + Y**2) / (w * w))
     E = np.zeros((len(x), len(x)), complex)
-    E[np.ix_(myk, mxk)] = amp * np.exp(2j * np.pi / lam * S)
+    box = E[myk.nonzero()[0][0]:myk.nonzero()[0][-1] + 1, mxk.nonzero()[0][0]:mxk.nonzero()[0][-1] + 1]  # a view
+    for c in _row_chunks(int(myk.sum())):  # a chunk of rows at a time (the masks are contiguous ranges)
+        X, Y = np.meshgrid(x[mxk], x[myk][c], indexing="xy")
+        S = (tx * X + ty * Y) / nrm
+        if curvature_mm is not None:
+            R = float(curvature_mm)
+            S = S - np.sign(R) * (np.sqrt(X**2 + Y**2 + R * R) - abs(R))
+        amp = np.ones_like(X)
+        if gaussian:
+            w = 0.5 * bench.laser.beam_diameter_mm
+            amp = np.exp(-(X**2 + Y**2) / (w * w))
+        box[c] = amp * np.exp(2j * np.pi / lam * S)
     exp = np.broadcast_to(np.array([tx, ty]), centres.shape).copy()
     if curvature_mm is not None:
         exp = exp - centres / curvature_mm
@@ -473,12 +498,23 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
     lam = bench.laser.wavelength_nm * 1e-6
     f = cfg.focal(sensor)
     cx, cy = lit_box(sensor, cfg, centres)
-    T = lenslet_transmission(field.x, sensor, cfg, cx, cy, lam)
     start = centres + f * field.expected_slopes if start_mm is None else start_mm
     args = (field.x, sensor.pixel_mm, cfg.samples_per_pixel)
+
+    def transmitted(lit_x=None, lit_y=None) -> np.ndarray:
+        """E x the lenslets' transmission (x the lit lattice class), complex64 as the camera's FFT takes it,
+        built a chunk of rows at a time."""
+        out = np.empty(field.E.shape, np.complex64)
+        for c in _row_chunks(len(field.x)):
+            v = field.E[c] * lenslet_transmission(field.x, sensor, cfg, cx, cy, lam, rows=c)
+            if lit_x is not None:
+                v = v * (lit_y[c, None] & lit_x[None, :])
+            out[c] = v
+        return out
+
     k = cfg.lit_stride
     if k == 1:
-        inten = _camera_intensity(field.E * T, field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+        inten = _camera_intensity(transmitted(), field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
         return spot_centroids(inten, *args, start, cfg.window(sensor), cfg.cut(sensor), cfg.tracking_iterations)
     p = sensor.pitch_mm
     ix = np.rint(field.x / p).astype(int) % k  # lattice class of the lenslet each sample belongs to
@@ -486,11 +522,11 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
     out = np.empty_like(start)
     for a in range(k):
         for b in range(k):
-            lit = (ix[None, :] == a) & (ix[:, None] == b)
             mine = (jx[:, 0] == a) & (jx[:, 1] == b)
             if not mine.any():
                 continue
-            inten = _camera_intensity(field.E * T * lit, field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+            inten = _camera_intensity(transmitted(ix == a, ix == b), field.x, f, lam, cfg.samples_per_pixel,
+                                      cfg.oversample)
             out[mine] = spot_centroids(inten, *args, start[mine], cfg.window(sensor), cfg.cut(sensor),
                                        cfg.tracking_iterations)
     return out
