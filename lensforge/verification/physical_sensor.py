@@ -462,10 +462,11 @@ def _fit_potential_xy(xi, eta, gx, gy, h, deg):
 
 
 def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0.0, 0.0), gaussian: bool = False,
-                curvature_mm: float | None = None) -> MlaField:
+                curvature_mm: float | None = None, beam_offset_mm=(0.0, 0.0)) -> MlaField:
     """An analytic field on the lit box of the pupil lenslets ``centres``: a plane wave of slope (tan) ``slope``
-    (uniform, or the bench's Gaussian beam when ``gaussian``), or with ``curvature_mm`` = R a spherical wave
-    converging to a point R (mm) after the lenslet plane (R < 0: diverging from a point -R before it)."""
+    (uniform, or the bench's Gaussian beam when ``gaussian``, centred at ``beam_offset_mm`` (x, y) on the
+    lenslet plane), or with ``curvature_mm`` = R a spherical wave converging to a point R (mm) after the lenslet
+    plane (R < 0: diverging from a point -R before it)."""
     sensor = bench.sensor
     lam = bench.laser.wavelength_nm * 1e-6
     cx, cy = lit_box(sensor, cfg, centres)
@@ -484,7 +485,7 @@ def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0
         amp = np.ones_like(X)
         if gaussian:
             w = 0.5 * bench.laser.beam_diameter_mm
-            amp = np.exp(-(X**2 + Y**2) / (w * w))
+            amp = np.exp(-((X - beam_offset_mm[0]) ** 2 + (Y - beam_offset_mm[1]) ** 2) / (w * w))
         box[c] = amp * np.exp(2j * np.pi / lam * S)
     exp = np.broadcast_to(np.array([tx, ty]), centres.shape).copy()
     if curvature_mm is not None:
