@@ -216,6 +216,19 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
     return out
 
 
+def _floats(n: int | None = None):
+    """argparse type: comma-separated finite numbers (n of them when given); a bad one is a usage error (exit 2)."""
+    def parse(text: str) -> tuple:
+        try:
+            v = tuple(float(t) for t in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        if not all(np.isfinite(v)) or (n is not None and len(v) != n):
+            raise argparse.ArgumentTypeError(f"expected {n or 'some'} finite comma-separated numbers, got {text!r}")
+        return v
+    return parse
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--design", default=None)
@@ -246,16 +259,17 @@ def main(argv=None):
                     "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
-    ap.add_argument("--radii", default="20,30,-30,60,100,-100", help="--spheres: the waves' radii, mm (a huge one: "
+    ap.add_argument("--radii", type=_floats(), default=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), help="--spheres: the waves' radii, mm (a huge one: "
                     "a plane wave)")
-    ap.add_argument("--beam-offset", default="0,0", help="--spheres: the Gaussian beam's centre x,y on the lenslets, "
+    ap.add_argument("--beam-offset", type=_floats(2), default=(0.0, 0.0), help="--spheres: the Gaussian beam's centre x,y on the lenslets, "
                     "mm (an irradiance gradient across the pupil)")
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
     if a.spheres:
-        out = spheres(tuple(float(r) for r in a.radii.split(",")), spp=a.spp, margin=a.margin, design=a.design,
-                      beam_offset_mm=tuple(float(v) for v in a.beam_offset.split(",")))
+        if any(r == 0 for r in a.radii):
+            ap.error("--radii: a radius of 0 is no wave (a huge one is a plane wave)")
+        out = spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design, beam_offset_mm=a.beam_offset)
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return
