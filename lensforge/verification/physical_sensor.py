@@ -86,6 +86,8 @@ class PhysicalSensor:
     bench's ``sensor.lenslet_focal_mm``). The light is propagated over it, while slopes are
     converted with the bench's value, as a device converts with its stored MLA data: a
     different true focal length is a common gain f_true / f_bench on every slope.
+    propagation: 'exact' (the angular spectrum's transfer function) or 'fresnel' (its paraxial
+    approximation, the fast kernel's: a diagnostic of what the non-paraxial terms move, not a sensor).
     """
 
     aperture: str = "square"
@@ -102,8 +104,11 @@ class PhysicalSensor:
     window_px: int | None = None
     threshold: float | None = None
     focal_mm: float | None = None
+    propagation: str = "exact"
 
     def __post_init__(self):
+        if self.propagation not in ("exact", "fresnel"):
+            raise ConfigError(f"physical sensor propagation: must be 'exact' or 'fresnel', got {self.propagation!r}")
         if self.aperture not in APERTURES:
             raise ConfigError(f"physical sensor aperture: must be one of {list(APERTURES)}, got {self.aperture!r}")
         if self.reference not in ("factory", "beam"):
@@ -231,7 +236,7 @@ def lenslet_transmission(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx:
 
 
 def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: float, spp: int,
-                      oversample: int = 1) -> np.ndarray:
+                      oversample: int = 1, fresnel: bool = False) -> np.ndarray:
     """Pixel intensities (Np, Np) [y, x] at distance f: angular spectrum, then the intensity summed over
     spp x spp field samples per pixel, each of them seen at oversample x oversample sub-sample shifts (the
     band-limited field evaluated exactly there by a phase ramp on its spectrum: the intensity has twice the
@@ -244,7 +249,10 @@ def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: flo
     del E  # the caller's complex64 field, when it passed a temporary
     for c in _row_chunks(n):  # the transfer function, a chunk of rows at a time
         arg = 1.0 / wavelength_mm**2 - fr[None, :] ** 2 - fr[c, None] ** 2
-        kz = 2 * np.pi * (np.sqrt(np.clip(arg, 0.0, None)) - 1.0 / wavelength_mm)  # the plane-wave phase k f dropped
+        if fresnel:  # paraxial: kz - k = -pi lambda (fx^2 + fy^2)
+            kz = -np.pi * wavelength_mm * (fr[None, :] ** 2 + fr[c, None] ** 2)
+        else:
+            kz = 2 * np.pi * (np.sqrt(np.clip(arg, 0.0, None)) - 1.0 / wavelength_mm)  # the plane-wave phase k f dropped
         spec[c] *= np.where(arg > 0, np.exp(1j * f * kz), 0.0).astype(np.complex64)
     m = n // spp
     inten = np.zeros((m, m))
@@ -515,7 +523,8 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
 
     k = cfg.lit_stride
     if k == 1:
-        inten = _camera_intensity(transmitted(), field.x, f, lam, cfg.samples_per_pixel, cfg.oversample)
+        inten = _camera_intensity(transmitted(), field.x, f, lam, cfg.samples_per_pixel, cfg.oversample,
+                                  cfg.propagation == "fresnel")
         return spot_centroids(inten, *args, start, cfg.window(sensor), cfg.cut(sensor), cfg.tracking_iterations)
     p = sensor.pitch_mm
     ix = np.rint(field.x / p).astype(int) % k  # lattice class of the lenslet each sample belongs to
@@ -527,7 +536,7 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
             if not mine.any():
                 continue
             inten = _camera_intensity(transmitted(ix == a, ix == b), field.x, f, lam, cfg.samples_per_pixel,
-                                      cfg.oversample)
+                                      cfg.oversample, cfg.propagation == "fresnel")
             out[mine] = spot_centroids(inten, *args, start[mine], cfg.window(sensor), cfg.cut(sensor),
                                        cfg.tracking_iterations)
     return out
