@@ -63,6 +63,21 @@ def test_aperture_moments_with_an_amplitude_gradient_and_curvature_are_the_integ
             np.testing.assert_allclose(got, 0.6 * ref[:, 1: R + 2] - 0.8 * ref[:, 2: R + 3], rtol=0, atol=tol)
 
 
+def test_aperture_moments_of_interleaved_amplitude_pairs_are_each_pairs_own():
+    # the kernel keeps the Taylor coefficients of the last two (gamma, delta) pairs: interleaved pairs (x and y of
+    # one sub-aperture, then a third evicting one, zeros between) give bitwise what each element gives alone
+    rng = np.random.default_rng(3)
+    pairs = np.array([(0.7, 0.02), (-1.1, 0.0), (0.0, 0.05), (0.0, 0.0), (2.0, -0.1)])
+    order = np.array([0, 1, 0, 1, 2, 0, 3, 1, 4, 4, 0, 2, 3, 3, 1, 0])
+    gamma, delta = pairs[order, 0], pairs[order, 1]
+    beta, alpha = rng.uniform(-30, 30, order.size), rng.uniform(-8, 8, order.size)
+    re, im = square_aperture_moments(beta, alpha, 3, gamma, delta)
+    for i in range(order.size):
+        r1, i1 = square_aperture_moments(beta[i:i + 1], alpha[i], 3, gamma[i], delta[i])
+        np.testing.assert_array_equal(re[i], r1[0])
+        np.testing.assert_array_equal(im[i], i1[0])
+
+
 def _brute_force_centroid(spot, K, g, sensor, wl_nm, sub, nodes=160):
     """Window centroid of the 7 x 7 block's coherent field, integrated node by node over each sub-aperture:
     U(x) = sum_b exp(-i k |c_b|^2 / 2f) int_b E(X) exp(i k X . (c_b - x) / f) dX, E = exp(g.c_b / 2 + i k W),

@@ -95,35 +95,33 @@ def _moment_jets(beta, alpha, gamma, delta, big_re, big_im, r_max, out):
         gm = gamma[i]
         dl = delta[i]
         n_g = 0
-        slot = -1
         if gm != 0.0 or dl != 0.0:
+            slot = -1
             for s in range(2):
                 if key_c[s, 0] == gm and key_c[s, 1] == dl:
                     slot = s
-        if slot >= 0:
+            if slot < 0:  # a new pair: its coefficients replace the older slot's
+                slot = slot_next
+                slot_next = 1 - slot
+                cg[0], cd[0] = 1.0, 1.0
+                for n in range(1, n_g_max + 1):
+                    cg[n] = cg[n - 1] * gm / n
+                for j in range(1, n_g_max // 2 + 1):
+                    cd[j] = cd[j - 1] * dl / j
+                for n in range(n_g_max + 1):
+                    cs, bs = 0.0, 0.0
+                    for j in range(n // 2 + 1):
+                        cs += cg[n - 2 * j] * cd[j]
+                        bs += abs(cg[n - 2 * j] * cd[j]) * 0.5 ** (n - 2 * j) * 0.25 ** j
+                    cn_c[slot, n], bn[n] = cs, bs
+                # terms down to _GRAD_TOL: the last n whose bound (or the next one's) is above it
+                ng_c[slot] = 0
+                for n in range(1, n_g_max + 1):
+                    if bn[n] >= _GRAD_TOL or (n < n_g_max and bn[n + 1] >= _GRAD_TOL):
+                        ng_c[slot] = n
+                key_c[slot, 0], key_c[slot, 1] = gm, dl
             n_g = ng_c[slot]
             cn = cn_c[slot]
-        elif gm != 0.0 or dl != 0.0:
-            slot = slot_next
-            slot_next = 1 - slot_next
-            cn = cn_c[slot]
-            cg[0], cd[0] = 1.0, 1.0
-            for n in range(1, n_g_max + 1):
-                cg[n] = cg[n - 1] * gm / n
-            for j in range(1, n_g_max // 2 + 1):
-                cd[j] = cd[j - 1] * dl / j
-            for n in range(n_g_max + 1):
-                cs, bs = 0.0, 0.0
-                for j in range(n // 2 + 1):
-                    cs += cg[n - 2 * j] * cd[j]
-                    bs += abs(cg[n - 2 * j] * cd[j]) * 0.5 ** (n - 2 * j) * 0.25 ** j
-                cn[n], bn[n] = cs, bs
-            # terms down to _GRAD_TOL: the last n whose bound (or the next one's) is above it
-            for n in range(1, n_g_max + 1):
-                if bn[n] >= _GRAD_TOL or (n < n_g_max and bn[n + 1] >= _GRAD_TOL):
-                    n_g = n
-            ng_c[slot] = n_g
-            key_c[slot, 0], key_c[slot, 1] = gm, dl
         r_top = r_max + n_g  # plain moments wanted: 0 .. r_top + 2
         fresnel = abs(a) >= ALPHA_FRESNEL
         if fresnel:  # the upward recursion multiplies rounding by |b| / 2|a| a step: only where that stays small
