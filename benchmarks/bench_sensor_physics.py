@@ -175,7 +175,7 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
     the lenslets (R < 0 diverging), uniform or with the bench's Gaussian beam (centred at beam_offset_mm: an
     irradiance gradient across the pupil), over the bench's pupil (the design file's bench, else the default)."""
     from lensforge.optics.centroid import cell_crosstalk_slopes, centroid_slopes, crosstalk_slopes, lit_lenslets
-    from lensforge.verification.physical_sensor import field_slopes, plane_field
+    from lensforge.verification.physical_sensor import analytic_wave_quadratures, field_slopes, plane_field
 
     bench = load_design_lens(design)[1] if design else lf.Bench.default()
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
@@ -190,10 +190,8 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                     X = lit[:, None, :] + p * off[None]
                 else:
                     X = c[:, None, :] + p * off[None]
-                sq = -X / R  # the sphere's slopes (tan) at the quadrature points
-                wb = 0.5 * bench.laser.beam_diameter_mm
-                wi = w * (np.exp(-2 * ((X - np.asarray(beam_offset_mm)) ** 2).sum(-1) / wb**2) if gauss
-                          else np.ones(X.shape[:2]))
+                sq, irr = analytic_wave_quadratures(bench, X, R, gauss, beam_offset_mm)
+                wi = w * irr
                 if xt == "cells":
                     row[xt] = m.pupil.fit(cell_crosstalk_slopes(sq, wi, off, w, lit, nbrs, bench.sensor,
                                                                 bench.laser.wavelength_nm))

@@ -217,16 +217,17 @@ def test_cells_model_with_an_off_centre_beam_on_a_diverging_wave():
     from pathlib import Path
 
     from lensforge.optics.lens import resolve_lens
-    from lensforge.verification.physical_sensor import PhysicalSensor, field_slopes, plane_field
+    from lensforge.verification.physical_sensor import (PhysicalSensor, analytic_wave_quadratures, field_slopes,
+                                                        plane_field)
 
     bench = resolve_lens(Path(__file__).parent / "data" / "codesign-zernike.json").bench
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil and fit only
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
     lit, nbrs = centroid.lit_lenslets(bench.sensor, c)
     X = lit[:, None, :] + p * off[None]
-    R, y0, wb = -100.0, 3.0, 0.5 * bench.laser.beam_diameter_mm
-    wi = w * np.exp(-2 * (X[..., 0] ** 2 + (X[..., 1] - y0) ** 2) / wb**2)
-    s_cells = centroid.cell_crosstalk_slopes(-X / R, wi, off, w, lit, nbrs, bench.sensor, bench.laser.wavelength_nm)
+    R, y0 = -100.0, 3.0
+    sq, irr = analytic_wave_quadratures(bench, X, R, gaussian=True, beam_offset_mm=(0.0, y0))
+    s_cells = centroid.cell_crosstalk_slopes(sq, w * irr, off, w, lit, nbrs, bench.sensor, bench.laser.wavelength_nm)
     cfg = PhysicalSensor(samples_per_pixel=6)
     s_phys = field_slopes(plane_field(bench, cfg, c, curvature_mm=R, gaussian=True, beam_offset_mm=(0.0, y0)),
                           bench, cfg, c)[0]

@@ -212,27 +212,37 @@ def _cell_fractions(x: np.ndarray, dx: float, centres: np.ndarray, width: float)
     return np.clip(hi - lo, 0.0, None) / dx
 
 
-def lenslet_transmission(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray,
-                         wavelength_mm: float, rows: slice = slice(None)) -> np.ndarray:
-    """Complex transmission (N, N) [y, x] of the lit lenslets on the sample grid x (mm); ``rows``: only
-    those rows (y samples) of it."""
+def lenslet_transmission_rows(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray,
+                              wavelength_mm: float) -> Callable[[slice], np.ndarray]:
+    """rows -> those rows [y, x] of the lit lenslets' complex transmission on the sample grid x (mm): the x
+    factors are computed once, each call builds only its rows (the grid is too large to hold twice)."""
     f, p = cfg.focal(sensor), sensor.pitch_mm
     k = 2 * np.pi / wavelength_mm
     dx = x[1] - x[0]
-    y = x[rows]
     if cfg.aperture == "square":  # separable: sum_i frac_i(x) exp(-i k (x - c_i)^2 / 2f), one sample in <= 2 cells
-        ax = (_cell_fractions(x, dx, cx, p) * np.exp(-0.5j * k * (x[:, None] - cx[None, :]) ** 2 / f)).sum(axis=1)
-        ay = (_cell_fractions(y, dx, cy, p) * np.exp(-0.5j * k * (y[:, None] - cy[None, :]) ** 2 / f)).sum(axis=1)
-        return ay[:, None] * ax[None, :]
+        def factor(v, c):
+            return (_cell_fractions(v, dx, c, p) * np.exp(-0.5j * k * (v[:, None] - c[None, :]) ** 2 / f)).sum(axis=1)
+
+        ax = factor(x, cx)
+        return lambda rows: factor(x[rows], cy)[:, None] * ax[None, :]
     # round: each sample belongs to its nearest lenslet; area fraction inside radius R (edge linearised)
     R = 0.5 * cfg.lenslet_diameter_mm
-    ix = np.clip(np.rint((x - cx[0]) / p).astype(int), 0, len(cx) - 1)
-    iy = np.clip(np.rint((y - cy[0]) / p).astype(int), 0, len(cy) - 1)
-    ux = x - cx[ix]
-    uy = y - cy[iy]
-    r = np.sqrt(ux[None, :] ** 2 + uy[:, None] ** 2)
-    mask = np.clip((R - r) / dx + 0.5, 0.0, 1.0)
-    return mask * np.exp(-0.5j * k * r**2 / f)
+    ux = x - cx[np.clip(np.rint((x - cx[0]) / p).astype(int), 0, len(cx) - 1)]
+
+    def rows_of(rows):
+        y = x[rows]
+        uy = y - cy[np.clip(np.rint((y - cy[0]) / p).astype(int), 0, len(cy) - 1)]
+        r = np.sqrt(ux[None, :] ** 2 + uy[:, None] ** 2)
+        mask = np.clip((R - r) / dx + 0.5, 0.0, 1.0)
+        return mask * np.exp(-0.5j * k * r**2 / f)
+
+    return rows_of
+
+
+def lenslet_transmission(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor, cx: np.ndarray, cy: np.ndarray,
+                         wavelength_mm: float) -> np.ndarray:
+    """Complex transmission (N, N) [y, x] of the lit lenslets on the sample grid x (mm)."""
+    return lenslet_transmission_rows(x, sensor, cfg, cx, cy, wavelength_mm)(slice(None))
 
 
 def _camera_intensity(E: np.ndarray, x: np.ndarray, f: float, wavelength_mm: float, spp: int,
@@ -321,11 +331,15 @@ def _fit_values(xi, eta, v, deg):
     return C
 
 
-def _box_mask(x, sensor, cx, cy):
+def _box_slices(x, sensor, cx, cy) -> tuple[slice, slice]:
+    """(x, y) slices of the sample grid x (ascending) over the lit box's cells."""
     p = sensor.pitch_mm
-    mx = (x >= cx[0] - 0.5 * p - 1e-12) & (x <= cx[-1] + 0.5 * p + 1e-12)
-    my = (x >= cy[0] - 0.5 * p - 1e-12) & (x <= cy[-1] + 0.5 * p + 1e-12)
-    return mx, my
+
+    def span(c):
+        inside = np.nonzero((x >= c[0] - 0.5 * p - 1e-12) & (x <= c[-1] + 0.5 * p + 1e-12))[0]
+        return slice(int(inside[0]), int(inside[-1]) + 1)
+
+    return span(cx), span(cy)
 
 
 def _field_rays(model: ForwardModel, pose, cfg: PhysicalSensor) -> dict:
@@ -400,18 +414,18 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     Cs, rms, mx = _fit_potential_xy(xi, eta, d[ok, 0], d[ok, 1], h, deg)
     CI = _fit_values(xi, eta, np.log(I_beam[ok] / det[ok]), deg)
     x = _grid(sensor, cfg, cx, cy)
-    mxk, myk = _box_mask(x, sensor, cx, cy)
-    gx_, gy_ = (x[mxk] - centre[0]) / h[0], (x[myk] - centre[1]) / h[1]
+    bx, by = _box_slices(x, sensor, cx, cy)
+    gx_, gy_ = (x[bx] - centre[0]) / h[0], (x[by] - centre[1]) / h[1]
     Vx, Vy = leg.legvander(gx_, deg), leg.legvander(gy_, deg)
     k = 2 * np.pi / lam
     rows = _row_chunks(len(gy_))
     log_max = max(float((Vy[c] @ CI @ Vx.T).max()) for c in rows)
     E = np.zeros((len(x), len(x)), complex)
-    box = E[myk.nonzero()[0][0]:myk.nonzero()[0][-1] + 1, mxk.nonzero()[0][0]:mxk.nonzero()[0][-1] + 1]  # a view
-    for c in rows:  # the box a chunk of rows at a time (the masks are contiguous ranges)
+    box = E[by, bx]  # a view, filled a chunk of rows at a time
+    for c in rows:
         S = Vy[c] @ Cs @ Vx.T
         logI = Vy[c] @ CI @ Vx.T
-        box[c] = np.exp(0.5 * (logI - log_max) + 1j * k * S) * _lit_cells(x[mxk], x[myk][c], cx, cy, model, cfg)
+        box[c] = np.exp(0.5 * (logI - log_max) + 1j * k * S) * _lit_cells(x[bx], x[by][c], cx, cy, model, cfg)
     # expected spot start: the local ray slope (tan) at each pupil lenslet centre
     c = model.pupil.centres
     _, D = _legendre_basis(deg)
@@ -479,13 +493,13 @@ def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0
     lam = bench.laser.wavelength_nm * 1e-6
     cx, cy = lit_box(sensor, cfg, centres)
     x = _grid(sensor, cfg, cx, cy)
-    mxk, myk = _box_mask(x, sensor, cx, cy)
+    bx, by = _box_slices(x, sensor, cx, cy)
     tx, ty = slope
     nrm = np.sqrt(1 + tx * tx + ty * ty)
     E = np.zeros((len(x), len(x)), complex)
-    box = E[myk.nonzero()[0][0]:myk.nonzero()[0][-1] + 1, mxk.nonzero()[0][0]:mxk.nonzero()[0][-1] + 1]  # a view
-    for c in _row_chunks(int(myk.sum())):  # a chunk of rows at a time (the masks are contiguous ranges)
-        X, Y = np.meshgrid(x[mxk], x[myk][c], indexing="xy")
+    box = E[by, bx]  # a view, filled a chunk of rows at a time
+    for c in _row_chunks(len(x[by])):
+        X, Y = np.meshgrid(x[bx], x[by][c], indexing="xy")
         S = (tx * X + ty * Y) / nrm
         if curvature_mm is not None:
             R = float(curvature_mm)
@@ -501,6 +515,19 @@ def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0
     return MlaField(x, E, exp)
 
 
+def analytic_wave_quadratures(bench: Bench, X: np.ndarray, curvature_mm: float | None = None,
+                              gaussian: bool = False, beam_offset_mm=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """The fast models' inputs for ``plane_field``'s wave at normal incidence: slopes (tan) (..., 2) and relative
+    irradiance (...) at the points X (..., 2) mm (a sphere's tan slopes are exactly -X / R; the Gaussian beam of
+    ``plane_field`` centred at beam_offset_mm, or uniform)."""
+    X = np.asarray(X, float)
+    sq = -X / curvature_mm if curvature_mm is not None else np.zeros_like(X)
+    if not gaussian:
+        return sq, np.ones(X.shape[:-1])
+    w = 0.5 * bench.laser.beam_diameter_mm
+    return sq, np.exp(-2 * ((X - np.asarray(beam_offset_mm, float)) ** 2).sum(-1) / w**2)
+
+
 def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: np.ndarray,
                   start_mm: np.ndarray | None = None) -> np.ndarray:
     sensor = bench.sensor
@@ -510,12 +537,15 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
     start = centres + f * field.expected_slopes if start_mm is None else start_mm
     args = (field.x, sensor.pixel_mm, cfg.samples_per_pixel)
 
+    transmission = lenslet_transmission_rows(field.x, sensor, cfg, cx, cy, lam)
+    fresnel = cfg.propagation == "fresnel"
+
     def transmitted(lit_x=None, lit_y=None) -> np.ndarray:
         """E x the lenslets' transmission (x the lit lattice class), complex64 as the camera's FFT takes it,
         built a chunk of rows at a time."""
         out = np.empty(field.E.shape, np.complex64)
         for c in _row_chunks(len(field.x)):
-            v = field.E[c] * lenslet_transmission(field.x, sensor, cfg, cx, cy, lam, rows=c)
+            v = field.E[c] * transmission(c)
             if lit_x is not None:
                 v = v * (lit_y[c, None] & lit_x[None, :])
             out[c] = v
@@ -523,8 +553,7 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
 
     k = cfg.lit_stride
     if k == 1:
-        inten = _camera_intensity(transmitted(), field.x, f, lam, cfg.samples_per_pixel, cfg.oversample,
-                                  cfg.propagation == "fresnel")
+        inten = _camera_intensity(transmitted(), field.x, f, lam, cfg.samples_per_pixel, cfg.oversample, fresnel)
         return spot_centroids(inten, *args, start, cfg.window(sensor), cfg.cut(sensor), cfg.tracking_iterations)
     p = sensor.pitch_mm
     ix = np.rint(field.x / p).astype(int) % k  # lattice class of the lenslet each sample belongs to
@@ -536,7 +565,7 @@ def _centroids_of(field: MlaField, bench: Bench, cfg: PhysicalSensor, centres: n
             if not mine.any():
                 continue
             inten = _camera_intensity(transmitted(ix == a, ix == b), field.x, f, lam, cfg.samples_per_pixel,
-                                      cfg.oversample, cfg.propagation == "fresnel")
+                                      cfg.oversample, fresnel)
             out[mine] = spot_centroids(inten, *args, start[mine], cfg.window(sensor), cfg.cut(sensor),
                                        cfg.tracking_iterations)
     return out
