@@ -177,7 +177,12 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
     from lensforge.optics.centroid import cell_crosstalk_slopes, centroid_slopes, crosstalk_slopes, lit_lenslets
     from lensforge.verification.physical_sensor import analytic_wave_quadratures, field_slopes, plane_field
 
+    from lensforge.errors import ConfigError
+
     bench = load_design_lens(design)[1] if design else lf.Bench.default()
+    if np.hypot(*beam_offset_mm) >= 0.5 * bench.laser.beam_diameter_mm:
+        raise ConfigError(f"--beam-offset {beam_offset_mm}: the beam's centre must lie within its 1/e^2 radius "
+                          f"({0.5 * bench.laser.beam_diameter_mm:g} mm) of the sensor axis, or the pupil goes dark")
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
     out = {}
