@@ -92,7 +92,7 @@ class Sensor:
     (``centroid.crosstalk_slopes``: the 7 x 7 neighbours' coherent spots in each whole-pixel
     window, the block's field extrapolated from the own lenslet's, against the factory reference) or
     'cells' (``centroid.cell_crosstalk_slopes``: every lit lenslet within 4 rings, each with its own
-    traced field; issue 21); camera_offset_px: the camera pixel
+    traced field, propagated to the camera as the Rayleigh-Sommerfeld integral; issue 21); camera_offset_px: the camera pixel
     grid's offset from the lenslet array along x and y (ASSUMPTION 1/3 px: not known; 0
     puts the central row's and column's reference spots on pixel corners, a placement tie).
     focal_length_rel_sigma: relative 1-sigma uncertainty of the effective lenslet focal

@@ -592,7 +592,8 @@ def crosstalk_slopes(s: np.ndarray, sq: np.ndarray, wi: np.ndarray, offsets: np.
     the rays across a fully lit p x p aperture land, on average, at f tan(theta) (1 + 2 <u^2> / f^2),
     <u^2> = p^2 / 12 (1.4e-4 at the defaults; the physical reference gives 1.34e-4 for a 10 mrad
     plane wave). A real lenslet's distortion differs (ASSUMPTION: an ideal paraxial lenslet; it acts
-    as a 1e-4 change of the effective focal length)."""
+    as a 1e-4 change of the effective focal length). This model keeps the Fresnel kernel and adds the gain
+    by hand; 'cells' (``cell_crosstalk_slopes``) gets it from its Rayleigh-Sommerfeld kernel."""
     K, g = local_field(sq, wi, offsets, weights, sensor.pitch_mm)
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     spot = centres + f * s
