@@ -78,6 +78,12 @@ def compare(lens, bench, poses, variant: str, spp: int, margin: int = 5) -> dict
     return {"modes": model.modes.tolist(), "sigma_nm": (sig * 1e3).tolist(), "rows": rows}
 
 
+def _worst(sig, modes) -> str:
+    """'value(Z mode)' of the largest |dz| / sigma of one pose."""
+    i = int(np.argmax(np.abs(sig)))
+    return f"{sig[i]:+5.1f}(Z{modes[i]})"
+
+
 def validate(path: str, design: str | None, models=("neighbours", "cells")) -> dict:
     """The fast cross-talk models (sensor.crosstalk, ``models``) at the poses of a compare() JSON: per pose
     max |dz|/sigma of the old model (the compare run's own-centroid model) and of each, against the physical
@@ -111,7 +117,7 @@ def validate(path: str, design: str | None, models=("neighbours", "cells")) -> d
             out.setdefault(key, {"modes": r["modes"], "rows": rows})[f"seconds_per_pose_{mname}"] = dt
         line += " ".join(f"{max(np.abs(x['old_sigma'])):6.1f}" for x in rows)
         for mname in models:
-            line += f" | {mname}: " + " ".join(f"{max(np.abs(x[f'{mname}_sigma'])):5.1f}" for x in rows)
+            line += f" | {mname}: " + " ".join(_worst(x[f"{mname}_sigma"], r["modes"]) for x in rows)
         print(line, flush=True)
     return out
 

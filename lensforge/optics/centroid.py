@@ -347,35 +347,42 @@ def _rs_terms(block: dict, f: float, k: float):
 
 
 def _rs_powers(ar: np.ndarray, ai: np.ndarray, xs: np.ndarray, p: float, R: int):
-    """(Re, Im) (m, B, S, 2, 5, R+1) of int (x - p t)^a t^r (...) dt = sum_j C(a, j) x^(a-j) (-p)^j M_(r+j),
-    a = 0 .. 4, from the moments M_0 .. M_(R+4) (m, B, S, 2, R+5) and the window's samples x (m, S, 2)."""
-    from math import comb
+    """(Re, Im) (m, B, 5, 2, S, R+5) of E_a,r = int (x - p t)^a t^r (...) dt, a = 0 .. 4, r = 0 .. R (the larger r
+    are scratch), from the moments M_0 .. M_(R+4) (m, B, S, 2, R+5) and the window's samples x (m, S, 2), by the
+    recursion E_a,r = x E_(a-1),r - p E_(a-1),(r+1), E_0 = M. Each step runs over the flattened (2, S, r) axes (one
+    long contiguous loop): a row's last r picks up the next row's first, which reaches only r > R + 4 - a."""
+    m, B, S = ar.shape[:3]
+    L = 2 * S * (R + 5)
+    x = np.ascontiguousarray(np.broadcast_to(np.moveaxis(xs, -1, -2)[:, None, :, :, None], (m, 1, 2, S, R + 5)))
+    x = x.reshape(m, 1, L)[..., :-1]
+    dt = np.result_type(ar, ai, x)
+    out = []
+    for part in (ar, ai):
+        e = np.empty((m, B, 5, L), dtype=dt)
+        e[:, :, 0] = np.moveaxis(part, 3, 2).reshape(m, B, L)
+        for a in range(1, 5):
+            np.multiply(x, e[:, :, a - 1, :-1], out=e[:, :, a, :-1])
+            e[:, :, a, :-1] -= p * e[:, :, a - 1, 1:]
+            e[:, :, a, -1] = 0.0
+        out.append(e.reshape(m, B, 5, 2, S, R + 5))
+    return out[0], out[1]
 
-    x = xs[:, None, :, :, None]
-    er, ei = [], []
-    for a in range(5):
-        tr = sum(comb(a, j) * x ** (a - j) * (-p) ** j * ar[..., j:j + R + 1] for j in range(a + 1))
-        ti = sum(comb(a, j) * x ** (a - j) * (-p) ** j * ai[..., j:j + R + 1] for j in range(a + 1))
-        er.append(tr)
-        ei.append(ti)
-    return np.stack(er, axis=-2), np.stack(ei, axis=-2)
 
-
-def _rs_factors(er: np.ndarray, ei: np.ndarray, rem: dict):
-    """The field's x and y factors (each (Re, Im) (m, B, S, 5, R+1)) with the remainder to first order:
-    sum_b' Y_b'(y) X_b'(x), Y_b' = the y moments of e_y^b', X_b' = sum_a c_ab' (x moments of e_x^a), c_00 = 1."""
-    xr, xi = [], []
-    for b in range(5):
-        sr = er[..., 0, 0, :] * (b == 0)
-        si = ei[..., 0, 0, :] * (b == 0)
-        for a in range(5):
-            if (a, b) in rem:
-                cr, ci = (c[:, :, None, None] for c in rem[(a, b)])
-                pr, pi = _cmul(er[..., 0, a, :], ei[..., 0, a, :], cr, ci)
-                sr, si = sr + pr, si + pi
-        xr.append(sr)
-        xi.append(si)
-    return (np.stack(xr, axis=-2), np.stack(xi, axis=-2)), (er[..., 1, :, :], ei[..., 1, :, :])
+def _rs_factors(er: np.ndarray, ei: np.ndarray, rem: dict, R: int):
+    """The field's x and y factors (each (Re, Im) (m, B, 5, S, R+1)) with the remainder to first order:
+    sum_b' Y_b'(y) X_b'(x), Y_b' = the y moments of e_y^b', X_b' = sum_a c_ab' (x moments of e_x^a), c_00 = 1;
+    er, ei from ``_rs_powers``."""
+    exr, exi = er[:, :, :, 0], ei[:, :, :, 0]  # (m, B, 5 (a), S, R+5), each a contiguous
+    xr, xi = np.zeros_like(exr), np.zeros_like(exi)
+    xr[:, :, 0], xi[:, :, 0] = exr[:, :, 0], exi[:, :, 0]
+    for (a, b), (vr, vi) in rem.items():
+        vr, vi = vr[:, :, None, None], vi[:, :, None, None]
+        xr[:, :, b] -= vi * exi[:, :, a]
+        xi[:, :, b] += vi * exr[:, :, a]
+        if np.any(vr != 0):
+            xr[:, :, b] += vr * exr[:, :, a]
+            xi[:, :, b] += vr * exi[:, :, a]
+    return (xr[..., :R + 1], xi[..., :R + 1]), (er[:, :, :, 1, :, :R + 1], ei[:, :, :, 1, :, :R + 1])
 
 
 def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sensor, wavelength_nm: float,
@@ -428,21 +435,24 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     wr = cr[..., None] * ir_re - ci[..., None] * ir_im  # C_b i^r, (m, B, R+1)
     wi = cr[..., None] * ir_im + ci[..., None] * ir_re
     wr, wi = wr * pw, wi * pw
-    if rs:  # the remainder's monomials: x factors X_j (m, B, S, 5 (R+1)) against y factors e_y^j (m, B, S, 5 (R+1))
-        er, ei = _rs_powers(ar, ai, xs, p, R)  # (m, B, S, 2, 5, R+1): the moments of e^a = (x - p t)^a, a = 0 .. 4
-        (xr_, xi2), (yr0, yi0) = _rs_factors(er, ei, rem)
-        yr = (wr[:, :, None, None, :] * yr0 - wi[:, :, None, None, :] * yi0).reshape(yr0.shape[:3] + (-1,))
-        yi = (wr[:, :, None, None, :] * yi0 + wi[:, :, None, None, :] * yr0).reshape(yr0.shape[:3] + (-1,))
-        ar, ai = xr_.reshape(yr.shape)[..., None, :], xi2.reshape(yr.shape)[..., None, :]  # the x factors as axis 0
-    else:
+    # stacks (m, S_y, B K) @ (m, B K, S_x), contiguous: numpy's matmul takes its fast path only then
+    if rs:  # the remainder's monomials: K = 5 (R+1), x factors X_j against y factors e_y^j, j = 0 .. 4
+        er, ei = _rs_powers(ar, ai, xs, p, R)  # the moments of e^a = (x - p t)^a, a = 0 .. 4
+        (xr5, xi5), (yr5, yi5) = _rs_factors(er, ei, rem, R)  # (m, B, 5, S, R+1)
+        wr, wi = wr[:, :, None, None, :], wi[:, :, None, None, :]
+        m_, S = xr5.shape[0], xr5.shape[3]
+        yrT = np.ascontiguousarray(np.moveaxis(wr * yr5 - wi * yi5, 3, 1).reshape(m_, S, -1))
+        yiT = np.ascontiguousarray(np.moveaxis(wr * yi5 + wi * yr5, 3, 1).reshape(m_, S, -1))
+        xr = np.ascontiguousarray(np.moveaxis(xr5, 3, -1).reshape(m_, -1, S))
+        xi_ = np.ascontiguousarray(np.moveaxis(xi5, 3, -1).reshape(m_, -1, S))
+    else:  # K = R + 1
         yr = wr[:, :, None, :] * ar[..., 1, :] - wi[:, :, None, :] * ai[..., 1, :]  # (m, B, S, R+1)
         yi = wr[:, :, None, :] * ai[..., 1, :] + wi[:, :, None, :] * ar[..., 1, :]
-    m_, B, S = yr.shape[:3]
-    # stacks (m, S_y, B (R+1)) @ (m, B (R+1), S_x), contiguous: numpy's matmul takes its fast path only then
-    yrT = np.ascontiguousarray(np.moveaxis(yr, 2, 1).reshape(m_, S, -1))
-    yiT = np.ascontiguousarray(np.moveaxis(yi, 2, 1).reshape(m_, S, -1))
-    xr = np.ascontiguousarray(np.moveaxis(ar[..., 0, :], 2, -1).reshape(m_, -1, S))
-    xi_ = np.ascontiguousarray(np.moveaxis(ai[..., 0, :], 2, -1).reshape(m_, -1, S))
+        m_, S = yr.shape[0], yr.shape[2]
+        yrT = np.ascontiguousarray(np.moveaxis(yr, 2, 1).reshape(m_, S, -1))
+        yiT = np.ascontiguousarray(np.moveaxis(yi, 2, 1).reshape(m_, S, -1))
+        xr = np.ascontiguousarray(np.moveaxis(ar[..., 0, :], 2, -1).reshape(m_, -1, S))
+        xi_ = np.ascontiguousarray(np.moveaxis(ai[..., 0, :], 2, -1).reshape(m_, -1, S))
     ur = yrT @ xr - yiT @ xi_  # (m, S_y, S_x)
     ui = yrT @ xi_ + yiT @ xr
     return _pixel_centroid(ur, ui, st, sensor, sub)

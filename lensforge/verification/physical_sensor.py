@@ -7,8 +7,10 @@ trace and lensforge's Zernike fit matrix.
 1. Field at the lenslet array. A regular grid of beam rays is traced through the lens
    at the pose to the lenslet plane z = 0 of {S}. The eikonal S(X, Y) (optical path,
    mm) is the least-squares potential of the rays' direction cosines (dS/dX = L,
-   dS/dY = M: Malus-Dupin), a Legendre polynomial of total degree ``potential_degree``
-   over the lit lenslets (and a one-pitch collar); the irradiance
+   dS/dY = M: Malus-Dupin), a tensor-product B-spline of degree ``potential_degree`` on knots
+   ``potential_knot_mm`` apart over the lit lenslets (and a one-pitch collar): local, so a
+   fast-varying region (a lens's caustic near the lit margin) does not spoil the fit elsewhere,
+   as a global polynomial's did (see ``PhysicalSensor``); the irradiance
    I = I_beam / |det d(X, Y)/d(u, v)| (exact derivatives of the trace) is fitted alike in
    log I. The fit residual is reported (``PhysicalMeasurement.potential_residual_urad``). E = sqrt(I) exp(i k S).
 2. The whole lit lenslet array at once, coherently: every lenslet of the sensor within
@@ -32,7 +34,8 @@ trace and lensforge's Zernike fit matrix.
    the same model), 'beam' (a user reference recorded with the bench's laser and no
    lens, ``WFS_SetSpotsToUserReference``), or given centroids. Slopes are
    (centroid - reference) / f, fitted with lensforge's fit matrix.
-Cost: ~1-3 s per pose on one core (two FFTs of ~1700^2 at the defaults). Memory: the (N, N) grids are built
+Cost: ~1-3 s per pose on one core for the FFTs (two of ~1700^2 at the defaults), plus ~5-10 s for the ray
+field's spline fit (an SVD of ~27,000 x 2,500). Memory: the (N, N) grids are built
 and reduced a chunk of rows at a time: at most the lens's and the reference's fields (complex128) and the
 transmitted field, its spectrum or the camera field (complex64) live at once, ~45 N^2 bytes (the co-designed
 bench's 3.5 mm pupil at 12 samples per pixel, N = 21,000: 19.7 GB peak; before, 10 did not fit in 24 GB).
@@ -47,7 +50,6 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft as sfft
 from scipy.spatial import cKDTree
-from numpy.polynomial import legendre as leg
 
 from ..errors import ConfigError
 from ..input_checks import BENCH_RANGES, number
@@ -77,7 +79,12 @@ class PhysicalSensor:
     urad RMS off this reference at 7; 5 by default, the model lights 4; a wider lit box needs finer samples where
     edge rays are steep); oversample: sub-sample
     shifts per axis of the camera field for the pixel integral (``_camera_intensity``); pad_mm: zero padding of the propagation grid; potential_degree,
-    ray_grid: the ray-field fit; reference: 'factory' or 'beam' (see the module);
+    potential_knot_mm, ray_grid: the ray-field fit (B-spline degree, knot spacing, rays per axis; a fit whose slope
+    residual over the fitted rays exceeds ``POTENTIAL_TOL_URAD`` RMS is refused: the field would not be the lens's.
+    A global Legendre polynomial of degree 14, used before, missed the default design's plan pose
+    (-0.5, -0.5, -0.5 mm, -5, 5, 5 deg) by 39 urad RMS inside the pupil (degree 48: 0.38), where the lit margin
+    nears the lens's caustic, and made the reference read 23 sigma off 'cells' there; degree 7 on 0.2 mm knots:
+    0.004 urad in the pupil, 0.16 over all fitted rays; on 0.3 mm knots 0.06); reference: 'factory' or 'beam' (see the module);
 
     tracking_iterations: window re-centrings; lit_stride: 1 lights the whole array at once;
     s > 1 lights only every s-th lenslet along x and y at a time (s^2 runs), which takes the
@@ -95,7 +102,8 @@ class PhysicalSensor:
     samples_per_pixel: int = 4
     margin_lenslets: int = 5
     pad_mm: float = 0.5
-    potential_degree: int = 14
+    potential_degree: int = 7
+    potential_knot_mm: float = 0.2
     ray_grid: int = 160
     reference: str = "factory"
     tracking_iterations: int = 3
@@ -115,8 +123,10 @@ class PhysicalSensor:
             raise ConfigError(f"physical sensor reference: must be 'factory' or 'beam', got {self.reference!r}")
         if self.focal_mm is not None:  # the lenslets' true focal length: the bench's range and unit
             number(self.focal_mm, "physical sensor focal_mm", BENCH_RANGES["sensor.lenslet_focal_mm"])
-        if self.samples_per_pixel < 1 or self.margin_lenslets < 1 or self.potential_degree < 2:
-            raise ConfigError("physical sensor: samples_per_pixel >= 1, margin_lenslets >= 1, potential_degree >= 2")
+        if self.samples_per_pixel < 1 or self.margin_lenslets < 1 or self.potential_degree < 3:
+            raise ConfigError("physical sensor: samples_per_pixel >= 1, margin_lenslets >= 1, potential_degree >= 3")
+        if not (np.isfinite(self.potential_knot_mm) and 0.01 <= self.potential_knot_mm <= 2.0):
+            raise ConfigError(f"physical sensor potential_knot_mm: must be 0.01-2 mm, got {self.potential_knot_mm!r}")
 
     def sampled_for(self, bench: Bench, max_slope: float) -> "PhysicalSensor":
         """These settings with samples_per_pixel raised, if need be, to resolve rays sloping up to
@@ -309,26 +319,83 @@ def spot_centroids(inten: np.ndarray, x: np.ndarray, pixel: float, spp: int, sta
 
 # ----------------------------------------------------------------------------- fields
 
-def _legendre_basis(deg: int):
-    terms = [(a, n - a) for n in range(1, deg + 1) for a in range(n + 1)]  # no constant (piston)
-    D = np.zeros((deg + 1, deg + 1))
-    for a in range(1, deg + 1):
-        e = np.zeros(deg + 1)
-        e[a] = 1.0
-        d = leg.legder(e)
-        D[: len(d), a] = d
-    return terms, D
+POTENTIAL_TOL_URAD = 1.0  # the ray-field fit's slope residual (RMS over the fitted rays) beyond which it is refused
 
 
-def _fit_values(xi, eta, v, deg):
-    terms = [(a, n - a) for n in range(deg + 1) for a in range(n + 1)]
-    Vx, Vy = leg.legvander(xi, deg), leg.legvander(eta, deg)
-    a = np.array([t[0] for t in terms])
-    b = np.array([t[1] for t in terms])
-    coef, *_ = np.linalg.lstsq(Vx[:, a] * Vy[:, b], v, rcond=None)
-    C = np.zeros((deg + 1, deg + 1))
-    C[b, a] = coef
-    return C
+@dataclass(frozen=True)
+class _Knots:
+    """A clamped B-spline knot vector of degree k over [lo, hi], ~step apart (``PhysicalSensor.potential_knot_mm``)."""
+
+    lo: float
+    hi: float
+    step: float
+    k: int
+
+    @property
+    def t(self) -> np.ndarray:
+        n = max(1, int(np.ceil((self.hi - self.lo) / self.step)))
+        return np.r_[[self.lo] * self.k, np.linspace(self.lo, self.hi, n + 1), [self.hi] * self.k]
+
+    @property
+    def size(self) -> int:
+        return len(self.t) - self.k - 1
+
+    def local(self, x: np.ndarray, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(first basis index (n,), values (n, k + 1) of the k + 1 basis functions nonzero at x (or their nu-th
+        derivatives)): the B-spline's local support, x clipped into [lo, hi]."""
+        from scipy.interpolate import BSpline
+
+        t, k = self.t, self.k
+        x = np.clip(np.asarray(x, float), self.lo, self.hi)
+        span = np.clip(np.searchsorted(t, x, side="right") - 1, k, len(t) - k - 2)
+        first = span - k
+        vals = np.empty((x.size, k + 1))
+        for j in range(k + 1):  # basis function first + j, evaluated where it is nonzero
+            c = np.zeros(self.size)
+            out = np.zeros(x.size)
+            for i in np.unique(first + j):
+                c[i] = 1.0
+                sel = first + j == i
+                out[sel] = BSpline(t, c, k, extrapolate=False)(x[sel], nu)
+                c[i] = 0.0
+            vals[:, j] = np.nan_to_num(out)
+        return first, vals
+
+    def dense(self, x: np.ndarray, nu: int = 0) -> np.ndarray:
+        """(n, size) basis values (or nu-th derivatives) at x."""
+        first, vals = self.local(x, nu)
+        out = np.zeros((x.size, self.size))
+        np.put_along_axis(out, first[:, None] + np.arange(self.k + 1), vals, axis=1)
+        return out
+
+
+def _spline_fit(kx: _Knots, ky: _Knots, X: np.ndarray, rows: list[tuple[np.ndarray, int, int]]) -> tuple:
+    """Coefficients C (ky.size, kx.size) of the tensor-product spline s(x, y) = sum C[j, i] B_j(y) B_i(x) that fits,
+    in least squares, the values v of its derivatives d^(nx + ny) s / dx^nx dy^ny at the points X (n, 2), rows =
+    [(v (n,), nx, ny), ...], and the residuals. By SVD (relative cutoff 1e-10) over the coefficients some point
+    touches (the others 0): the partly covered edge makes the system ill-conditioned, and its normal equations
+    (cond^2) or a pivoted QR left 5-10x the SVD's slope residual on the default design's plan pose."""
+    from scipy import linalg
+
+    nk = kx.k + 1
+    blocks = []
+    for v, nx, ny in rows:
+        fx, vx = kx.local(X[:, 0], nx)
+        fy, vy = ky.local(X[:, 1], ny)
+        cols = ((fy[:, None] + np.arange(nk))[:, :, None] * kx.size + (fx[:, None] + np.arange(nk))[:, None, :])
+        blocks.append((cols.reshape(len(v), -1), (vy[:, :, None] * vx[:, None, :]).reshape(len(v), -1)))
+    used = np.unique(np.concatenate([c.ravel() for c, _ in blocks]))
+    A = np.zeros((sum(len(v) for v, _, _ in rows), used.size))
+    r0 = 0
+    for cols, vals in blocks:
+        n = len(cols)
+        A[np.arange(r0, r0 + n)[:, None], np.searchsorted(used, cols)] = vals  # a point's columns are distinct
+        r0 += n
+    b = np.concatenate([v for v, _, _ in rows])
+    coef = linalg.lstsq(A, b, cond=1e-10, lapack_driver="gelsd", check_finite=False)[0]
+    C = np.zeros(kx.size * ky.size)
+    C[used] = coef
+    return C.reshape(ky.size, kx.size), A @ coef - b
 
 
 def _box_slices(x, sensor, cx, cy) -> tuple[slice, slice]:
@@ -407,31 +474,37 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     if cfg.samples_per_pixel < need:
         raise ConfigError(f"physical sensor: samples_per_pixel {cfg.samples_per_pixel} under-samples the field's "
                           f"phase (largest ray slope {1e3 * s_max:.0f} mrad): use samples_per_pixel >= {need}")
-    xi, eta = (X[ok, 0] - centre[0]) / h[0], (X[ok, 1] - centre[1]) / h[1]
-    if not np.all(np.abs(xi) <= 1.05) or ok.sum() < 10 * cfg.potential_degree**2:
+    if ok.sum() < 1000:
         raise ConfigError("physical sensor: too few rays over the lit lenslet box (the lens clips the beam?)")
-    deg = cfg.potential_degree
-    Cs, rms, mx = _fit_potential_xy(xi, eta, d[ok, 0], d[ok, 1], h, deg)
-    CI = _fit_values(xi, eta, np.log(I_beam[ok] / det[ok]), deg)
+    # the splines span the fitted rays (the box and 5 % beyond)
+    kx, ky = (_Knots(centre[a] - 1.06 * h[a], centre[a] + 1.06 * h[a], cfg.potential_knot_mm, cfg.potential_degree)
+              for a in (0, 1))
+    Xf = X[ok]
+    Cs, res = _spline_fit(kx, ky, Xf, [(d[ok, 0], 1, 0), (d[ok, 1], 0, 1)])  # dS/dX = L, dS/dY = M
+    res_n = np.hypot(*res.reshape(2, -1))
+    rms, mx = float(np.sqrt(np.mean(res_n**2))), float(res_n.max())
+    if rms * 1e6 > POTENTIAL_TOL_URAD:
+        raise ConfigError(f"physical sensor: the ray field's potential misses the traced slopes by {rms * 1e6:.2f} urad "
+                          f"RMS (> {POTENTIAL_TOL_URAD}): use a smaller potential_knot_mm or a larger ray_grid")
+    CI, _ = _spline_fit(kx, ky, Xf, [(np.log(I_beam[ok] / det[ok]), 0, 0)])
     x = _grid(sensor, cfg, cx, cy)
     bx, by = _box_slices(x, sensor, cx, cy)
-    gx_, gy_ = (x[bx] - centre[0]) / h[0], (x[by] - centre[1]) / h[1]
-    Vx, Vy = leg.legvander(gx_, deg), leg.legvander(gy_, deg)
+    Bx, By = kx.dense(x[bx]), ky.dense(x[by])
     k = 2 * np.pi / lam
-    rows = _row_chunks(len(gy_))
-    log_max = max(float((Vy[c] @ CI @ Vx.T).max()) for c in rows)
+    rows = _row_chunks(len(x[by]))
+    lit = [_lit_cells(x[bx], x[by][c], cx, cy, model, cfg) for c in rows]
+    log_max = max(float(np.max(np.where(m > 0, By[c] @ CI @ Bx.T, -np.inf), initial=-np.inf))
+                  for c, m in zip(rows, lit))
     E = np.zeros((len(x), len(x)), complex)
     box = E[by, bx]  # a view, filled a chunk of rows at a time
-    for c in rows:
-        S = Vy[c] @ Cs @ Vx.T
-        logI = Vy[c] @ CI @ Vx.T
-        box[c] = np.exp(0.5 * (logI - log_max) + 1j * k * S) * _lit_cells(x[bx], x[by][c], cx, cy, model, cfg)
+    for c, m in zip(rows, lit):
+        S = By[c] @ Cs @ Bx.T
+        logI = np.minimum(By[c] @ CI @ Bx.T - log_max, 0.0)
+        box[c] = np.exp(0.5 * logI + 1j * k * S) * m
     # expected spot start: the local ray slope (tan) at each pupil lenslet centre
     c = model.pupil.centres
-    _, D = _legendre_basis(deg)
-    vx, vy = leg.legvander((c[:, 0] - centre[0]) / h[0], deg), leg.legvander((c[:, 1] - centre[1]) / h[1], deg)
-    Lc = np.einsum("nb,ba,na->n", vy, Cs, vx @ D) / h[0]
-    Mc = np.einsum("nb,ba,na->n", vy @ D, Cs, vx) / h[1]
+    Lc = np.einsum("nb,ba,na->n", ky.dense(c[:, 1]), Cs, kx.dense(c[:, 0], 1))
+    Mc = np.einsum("nb,ba,na->n", ky.dense(c[:, 1], 1), Cs, kx.dense(c[:, 0]))
     Nc = np.sqrt(np.clip(1 - Lc**2 - Mc**2, 1e-12, None))
     return MlaField(x, E, np.stack([Lc / Nc, Mc / Nc], 1), rms, mx)
 
@@ -465,22 +538,6 @@ def _lit_cells(xs: np.ndarray, ys: np.ndarray, cx: np.ndarray, cy: np.ndarray, m
     ix = np.clip(np.rint((xs - cx[0]) / p).astype(int), 0, len(cx) - 1)
     iy = np.clip(np.rint((ys - cy[0]) / p).astype(int), 0, len(cy) - 1)
     return lit[np.ix_(iy, ix)].astype(float)
-
-
-def _fit_potential_xy(xi, eta, gx, gy, h, deg):
-    """As _fit_potential with separate scales h = (h_x, h_y)."""
-    terms, D = _legendre_basis(deg)
-    Vx, Vy = leg.legvander(xi, deg), leg.legvander(eta, deg)
-    dVx, dVy = Vx @ D, Vy @ D
-    a = np.array([t[0] for t in terms])
-    b = np.array([t[1] for t in terms])
-    A = np.vstack([dVx[:, a] * Vy[:, b] / h[0], Vx[:, a] * dVy[:, b] / h[1]])
-    rhs = np.concatenate([gx, gy])
-    coef, *_ = np.linalg.lstsq(A, rhs, rcond=None)
-    res = A @ coef - rhs
-    C = np.zeros((deg + 1, deg + 1))
-    C[b, a] = coef
-    return C, float(np.sqrt(np.mean(res**2))), float(np.max(np.abs(res)))
 
 
 def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0.0, 0.0), gaussian: bool = False,
