@@ -315,9 +315,10 @@ def _rs_terms(block: dict, f: float, k: float):
     ray rho* = f s_b to first order (the tan mapping, and the pistons between lenslets): i k (phi(rho*) +
     grad phi(rho*) . (rho - rho*)). Expanded about rho_c = own spot - centre of b (``block`` 'rs_c', 'rs_star' = rho*;
     (m, B, 2)) in e = (camera point - own spot) - (aperture point - centre of b): the constant c0, the gradient g and
-    the squares e_x^2, e_y^2 exactly (an amplitude and phase per sub-aperture, a tilt and curvature of its aperture,
-    a ramp and curvature over the window; the squares are a tilt's astigmatism, ~0.4 rad over the window at 0.1 rad),
-    the cross and higher terms to first order, as the monomials e_x^a e_y^b, 2 <= a + b <= 4 (``_rs_factors``; phi's
+    the squares' phase e_x^2, e_y^2 exactly (an amplitude and phase per sub-aperture, a tilt and curvature of its
+    aperture, a ramp and curvature over the window; the squares are a tilt's astigmatism, ~0.4 rad over the window
+    at 0.1 rad), the squares' log-amplitude (|q e^2| <= ~1e-2 over a block; exact, it made the aperture moments'
+    gamma vary per sample, ~3x the kernel's cost), the cross and higher terms to first order, as the monomials e_x^a e_y^b, 2 <= a + b <= 4 (``_rs_factors``; phi's
     Taylor coefficients at rho_c). Returns (c0 (re, im) (m, B), g (re, im) (m, B, 2), the squares'
     coefficients q (re, im) (m, B, 2), the remainder's {(a, b): (re, im)}) in real arithmetic."""
     rc, rs = block["rs_c"], block["rs_star"]
@@ -334,8 +335,10 @@ def _rs_terms(block: dict, f: float, k: float):
          0.5 * k * (-(A / (r * f * (r + f)))[..., None] - rc * rc / (r**3)[..., None]))
     u, v = rc[..., 0], rc[..., 1]
     r3, r5, r7 = r**3, r**5, r**7
+    qr = q[0]  # the log-amplitude's squares, |q e^2| <= ~1e-2 over a block: to first order, with the remainder (an
+    q = (np.zeros_like(qr), q[1])  # exact exp(q_r e^2) put a per-sample gamma into every sub-aperture's moments)
     # phi's third and fourth derivatives over a! b!
-    rem = {(1, 1): (4 * u * v / (F * F), -k * u * v / r3),
+    rem = {(1, 1): (4 * u * v / (F * F), -k * u * v / r3), (2, 0): (qr[..., 0], 0 * u), (0, 2): (qr[..., 1], 0 * v),
            (3, 0): (0 * u, k * (-u / (2 * r3) + u**3 / (2 * r5))), (0, 3): (0 * v, k * (-v / (2 * r3) + v**3 / (2 * r5))),
            (2, 1): (0 * v, 0.5 * k * (-v / r3 + 3 * u * u * v / r5)), (1, 2): (0 * u, 0.5 * k * (-u / r3 + 3 * u * v * v / r5)),
            (4, 0): (0 * u, k * (-1 / (8 * r3) + 3 * u * u / (4 * r5) - 5 * u**4 / (8 * r7))),
@@ -373,15 +376,22 @@ def _rs_factors(er: np.ndarray, ei: np.ndarray, rem: dict, R: int):
     sum_b' Y_b'(y) X_b'(x), Y_b' = the y moments of e_y^b', X_b' = sum_a c_ab' (x moments of e_x^a), c_00 = 1;
     er, ei from ``_rs_powers``."""
     exr, exi = er[:, :, :, 0], ei[:, :, :, 0]  # (m, B, 5 (a), S, R+5), each a contiguous
-    xr, xi = np.zeros_like(exr), np.zeros_like(exi)
+    xr, xi = np.empty_like(exr), np.empty_like(exi)
     xr[:, :, 0], xi[:, :, 0] = exr[:, :, 0], exi[:, :, 0]
+    started = {0}
     for (a, b), (vr, vi) in rem.items():
         vr, vi = vr[:, :, None, None], vi[:, :, None, None]
-        xr[:, :, b] -= vi * exi[:, :, a]
-        xi[:, :, b] += vi * exr[:, :, a]
+        if b in started:
+            xr[:, :, b] -= vi * exi[:, :, a]
+            xi[:, :, b] += vi * exr[:, :, a]
+        else:  # the first term of this y power
+            np.multiply(-vi, exi[:, :, a], out=xr[:, :, b])
+            np.multiply(vi, exr[:, :, a], out=xi[:, :, b])
+            started.add(b)
         if np.any(vr != 0):
             xr[:, :, b] += vr * exr[:, :, a]
             xi[:, :, b] += vr * exi[:, :, a]
+    assert started == set(range(5)), "every y power 0 .. 4 has a remainder term"
     return (xr[..., :R + 1], xi[..., :R + 1]), (er[:, :, :, 1, :, :R + 1], ei[:, :, :, 1, :, :R + 1])
 
 
@@ -420,15 +430,14 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
         alpha = alpha + p * p * q[1][:, :, None, :]
     if "gam" in block:  # the irradiance gradient and curvature across each sub-aperture (its own weighting)
         gam, dlt = block["gam"][:, :, None, :], block["dlt"][:, :, None, :]
-        if rs:
-            gam = gam - p * (g[0][:, :, None, :] + 2 * q[0][:, :, None, :] * x4)
-            dlt = dlt + p * p * q[0][:, :, None, :]
+        if rs:  # one (gamma, delta) per sub-aperture and axis, not per sample: the aperture kernel's cache holds
+            gam = gam - p * g[0][:, :, None, :]
         mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R + 4 * rs, gam, dlt)
     else:
         mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
     cos_r, sin_r = np.cos(ramp), np.sin(ramp)
     if rs:
-        amp = np.exp(g[0][:, :, None, :] * x4 + q[0][:, :, None, :] * x4 * x4)[..., None]
+        amp = np.exp(g[0][:, :, None, :] * x4)[..., None]
         cos_r, sin_r = amp * cos_r, amp * sin_r
     ar, ai = mr * cos_r - mi * sin_r, mr * sin_r + mi * cos_r  # (m, B, S, 2, R+1 (+4))
     # y factor carries C_b (i a)^r / r!: its real and imaginary parts (real arithmetic for the complex step)
