@@ -17,39 +17,56 @@ def _gl(n):
     return 0.5 * x, 0.5 * w
 
 
+def _window_samples(spot, sensor, sub):
+    """First pixels st (2,) of the whole-pixel window on ``spot`` and its camera samples xs (2, S)."""
+    pix, Wpx = sensor.pixel_mm, sensor.centroid_window_px
+    edge0 = sensor.camera_offset_px * pix
+    st = np.floor((spot - edge0) / pix - 0.5 * Wpx + 0.5)
+    return st, edge0 + (st[:, None] + (np.arange(Wpx * sub) + 0.5)[None] / sub) * pix
+
+
+def _cell_field(i, b, cells, centres, ux, uy):
+    """(phase (mm of path), ln amplitude) of lit lenslet b's own field at u = (ux, uy) from its centre, in pupil
+    lenslet i's block: W_b - W_i by the two-point Hermite rule on the slopes and curvatures."""
+    s, K, g, h, ln_a = cells["tilt"], cells["K"], cells["g"], cells["h"], cells["ln_a"]
+    pe = centres[b] - centres[i]
+    Ki, Kb = 0.5 * (K[i] + K[i].T), 0.5 * (K[b] + K[b].T)
+    W_b = 0.5 * pe @ (s[i] + s[b]) + pe @ (Ki - Kb) @ pe / 12.0
+    phase = W_b + s[b, 0] * ux + s[b, 1] * uy + 0.5 * (Kb[0, 0] * ux * ux + 2 * Kb[0, 1] * ux * uy + Kb[1, 1] * uy * uy)
+    return phase, ln_a[b] + 0.5 * (g[b, 0] * ux + g[b, 1] * uy) + 0.25 * (h[b, 0] * ux * ux + h[b, 1] * uy * uy)
+
+
+def _window_centroid_of(U, st, sensor, sub, spot):
+    """Pixel-window centroid minus spot of the camera field U (S, S) sampled sub x sub per pixel."""
+    pix, Wpx = sensor.pixel_mm, sensor.centroid_window_px
+    inten = (np.abs(U) ** 2).reshape(Wpx, sub, Wpx, sub).sum(axis=(1, 3))
+    pc = sensor.camera_offset_px * pix + (st[:, None] + np.arange(Wpx)[None] + 0.5) * pix
+    return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / inten.sum() - spot
+
+
 def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120):
     """Window centroid of pupil lenslet i: every lit lenslet b of its block contributes the Fresnel integral of its
     own field, amplitude exp(ln_a_b + g_b . u / 2 + (h_bx u_x^2 + h_by u_y^2) / 4) and phase k (W_b + s_b . u + u K_b u / 2) over its square
     cell (u = X - c_b), W_b - W_i by the two-point Hermite rule on the slopes and curvatures, through its
     lenslet's focusing phase, summed node by node (no aperture moments, no series)."""
-    f, p, pix, Wpx = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, sensor.centroid_window_px
+    f, p, Wpx = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.centroid_window_px
     k = 2 * np.pi / (wl_nm * 1e-6)
-    s, K, g, h, ln_a = cells["tilt"], cells["K"], cells["g"], cells["h"], cells["ln_a"]
-    spot = centres[i] + f * s[i]
-    edge0 = sensor.camera_offset_px * pix
-    st = np.floor((spot - edge0) / pix - 0.5 * Wpx + 0.5)
-    xs = edge0 + (st[:, None] + (np.arange(Wpx * sub) + 0.5)[None] / sub) * pix  # (2, S) camera samples
+    spot = centres[i] + f * cells["tilt"][i]
+    st, xs = _window_samples(spot, sensor, sub)  # (2, S) camera samples
     t, w = _gl(nodes)
     U = np.zeros((Wpx * sub, Wpx * sub), complex)
-    Ki = 0.5 * (K[i] + K[i].T)
+    ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
     for b in neighbours[i]:
         if b < 0:
             continue
         c = centres[b]
-        pe = c - centres[i]
-        Kb = 0.5 * (K[b] + K[b].T)
-        W_b = 0.5 * pe @ (s[i] + s[b]) + pe @ (Ki - Kb) @ pe / 12.0
-        ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
-        phase = W_b + s[b, 0] * ux + s[b, 1] * uy + 0.5 * (Kb[0, 0] * ux * ux + 2 * Kb[0, 1] * ux * uy + Kb[1, 1] * uy * uy)
-        lnA = ln_a[b] + 0.5 * (g[b, 0] * ux + g[b, 1] * uy) + 0.25 * (h[b, 0] * ux * ux + h[b, 1] * uy * uy)
+        phase, lnA = _cell_field(i, b, cells, centres, ux, uy)
         E = np.exp(lnA + 1j * k * phase) * np.outer(w, w) * p * p
         # Fresnel: the field exp(-i k |X - c|^2 / 2f) E(X) seen at x; the factor exp(i k |x|^2 / 2f) common to all
         Gx = np.exp(1j * k * np.outer(c[0] - xs[0], c[0] + p * t) / f)
         Gy = np.exp(1j * k * np.outer(c[1] - xs[1], c[1] + p * t) / f)
         U += np.exp(-1j * k * (c @ c) / (2 * f)) * (Gy @ E @ Gx.T)
-    inten = (np.abs(U) ** 2).reshape(Wpx, sub, Wpx, sub).sum(axis=(1, 3))
-    pc = edge0 + (st[:, None] + np.arange(Wpx)[None] + 0.5) * pix
-    return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / inten.sum() - spot
+    return _window_centroid_of(U, st, sensor, sub, spot)
 
 
 def test_cells_kernel_is_the_blocks_fresnel_integral():
@@ -90,28 +107,21 @@ def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, no
     Fresnel one: the factor exp(Lambda), Lambda = ln(f^2 / r^2) + i k (r - f - |rho|^2 / 2f), less the part the
     model's tan slopes already hold (Lambda's phase linearised about the lenslet's chief ray rho* = f s_b), node by
     node (not separable: no aperture moments, no expansion)."""
-    f, p, pix, Wpx = sensor.lenslet_focal_mm, sensor.pitch_mm, sensor.pixel_mm, sensor.centroid_window_px
+    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     k = 2 * np.pi / (wl_nm * 1e-6)
-    s, K, g, h, ln_a = cells["tilt"], cells["K"], cells["g"], cells["h"], cells["ln_a"]
+    s = cells["tilt"]
     spot = centres[i] + f * s[i]
-    edge0 = sensor.camera_offset_px * pix
-    st = np.floor((spot - edge0) / pix - 0.5 * Wpx + 0.5)
-    xs = edge0 + (st[:, None] + (np.arange(Wpx * sub) + 0.5)[None] / sub) * pix  # (2, S)
+    st, xs = _window_samples(spot, sensor, sub)
     X, Y = np.meshgrid(xs[0], xs[1], indexing="xy")
     t, w = _gl(nodes)
     ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
     ux, uy, ww = ux.ravel(), uy.ravel(), np.outer(w, w).ravel() * p * p
     U = np.zeros(X.size, complex)
-    Ki = 0.5 * (K[i] + K[i].T)
     for b in neighbours[i]:
         if b < 0:
             continue
         c = centres[b]
-        pe = c - centres[i]
-        Kb = 0.5 * (K[b] + K[b].T)
-        W_b = 0.5 * pe @ (s[i] + s[b]) + pe @ (Ki - Kb) @ pe / 12.0
-        phase = W_b + s[b, 0] * ux + s[b, 1] * uy + 0.5 * (Kb[0, 0] * ux * ux + 2 * Kb[0, 1] * ux * uy + Kb[1, 1] * uy * uy)
-        lnA = ln_a[b] + 0.5 * (g[b, 0] * ux + g[b, 1] * uy) + 0.25 * (h[b, 0] * ux * ux + h[b, 1] * uy * uy)
+        phase, lnA = _cell_field(i, b, cells, centres, ux, uy)
         E = np.exp(lnA + 1j * k * (phase - (ux * ux + uy * uy) / (2 * f))) * ww  # through the lenslet
         rstar = f * s[b]
         r_s = np.sqrt(f * f + rstar @ rstar)
@@ -124,9 +134,7 @@ def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, no
             lin = phi_s + (rx - rstar[0]) * dphi_s[0] + (ry - rstar[1]) * dphi_s[1]
             lam = np.log(f * f / (r * r)) + 1j * k * (r - f - q / (2 * f) - lin)
             U[r0:r0 + 256] += (np.exp(1j * k * q / (2 * f) + lam) * E).sum(axis=1)
-    inten = (np.abs(U.reshape(X.shape)) ** 2).reshape(Wpx, sub, Wpx, sub).sum(axis=(1, 3))
-    pc = edge0 + (st[:, None] + np.arange(Wpx)[None] + 0.5) * pix
-    return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / inten.sum() - spot
+    return _window_centroid_of(U.reshape(X.shape), st, sensor, sub, spot)
 
 
 def test_cells_kernel_propagates_as_the_rayleigh_sommerfeld_integral():
