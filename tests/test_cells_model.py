@@ -69,21 +69,29 @@ def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes
     return _window_centroid_of(U, st, sensor, sub, spot)
 
 
-def test_cells_kernel_is_the_blocks_fresnel_integral():
-    # a pupil of 9 lenslets; every lit lenslet with its own tilt (up to 60 mrad), curvature (alpha up to ~6, K_xy
-    # included), irradiance gradient (up to e^0.5 across a cell) and curvature (|delta| <= 0.11) and amplitude; one
-    # lenslet dark
-    sensor = Sensor()
-    rng = np.random.default_rng(5)
+def _random_block(sensor, seed, ring, tilt0, spread):
+    """A pupil of 9 lenslets and its lit rings, every lit lenslet with its own tilt (tilt0 + a field gradient +
+    uniform +-spread), curvature (K_xy included), irradiance gradient and curvature and amplitude:
+    (pupil, centres, neighbours, cells)."""
+    rng = np.random.default_rng(seed)
     p = sensor.pitch_mm
     pupil = p * np.array([[a, b] for b in (-1, 0, 1) for a in (-1, 0, 1)], float)
-    centres, neighbours = centroid.lit_lenslets(sensor, pupil, ring=2)
+    centres, neighbours = centroid.lit_lenslets(sensor, pupil, ring=ring)
     L = len(centres)
     K = rng.uniform(-0.03, 0.03, (L, 2, 2))
     K = 0.5 * (K + np.swapaxes(K, 1, 2))
-    cells = {"tilt": 0.01 + rng.uniform(-0.05, 0.05, (L, 2)) * 0.3 + centres @ np.array([[0.02, 0.0], [0.0, -0.015]]),
+    cells = {"tilt": np.asarray(tilt0) + rng.uniform(-spread, spread, (L, 2)) + centres @ np.array([[0.02, 0.0], [0.0, -0.015]]),
              "K": K, "g": rng.uniform(-3, 3, (L, 2)), "h": rng.uniform(-20, 20, (L, 2)), "ln_a": rng.uniform(-0.3, 0.3, L),
              "lit": np.ones(L, bool)}
+    return pupil, centres, neighbours, cells
+
+
+def test_cells_kernel_is_the_blocks_fresnel_integral():
+    # tilts up to 60 mrad, curvature alpha up to ~6, an irradiance gradient up to e^0.5 across a cell and curvature
+    # |delta| <= 0.11; one lenslet dark
+    sensor = Sensor()
+    pupil, centres, neighbours, cells = _random_block(sensor, 5, 2, 0.01, 0.015)
+    L = len(centres)
     cells["ln_a"][L - 3] = -np.inf
     cells["lit"][L - 3] = False
     n = len(pupil)
@@ -143,16 +151,7 @@ def test_cells_kernel_propagates_as_the_rayleigh_sommerfeld_integral():
     # to first order leaves ~2 % of the non-paraxial shift at (70, -50) mrad, 0.5 % at 90 mrad along x), curvature, irradiance
     # gradient and curvature; an 11-pixel window keeps the brute force small
     sensor = Sensor(centroid_window_px=11)
-    rng = np.random.default_rng(8)
-    p = sensor.pitch_mm
-    pupil = p * np.array([[a, b] for b in (-1, 0, 1) for a in (-1, 0, 1)], float)
-    centres, neighbours = centroid.lit_lenslets(sensor, pupil, ring=1)
-    L = len(centres)
-    K = rng.uniform(-0.03, 0.03, (L, 2, 2))
-    K = 0.5 * (K + np.swapaxes(K, 1, 2))
-    cells = {"tilt": np.array([0.07, -0.05]) + rng.uniform(-0.02, 0.02, (L, 2)) + centres @ np.array([[0.02, 0.0], [0.0, -0.015]]),
-             "K": K, "g": rng.uniform(-3, 3, (L, 2)), "h": rng.uniform(-20, 20, (L, 2)), "ln_a": rng.uniform(-0.3, 0.3, L),
-             "lit": np.ones(L, bool)}
+    pupil, centres, neighbours, cells = _random_block(sensor, 8, 1, (0.07, -0.05), 0.02)
     n = len(pupil)
     spot = centres[:n] + sensor.lenslet_focal_mm * cells["tilt"][:n]
     got, fresnel = (centroid.cell_shift(spot, cells, centres, neighbours, sensor, 532.0, iterations=0, exact=e)
