@@ -319,8 +319,8 @@ def _rs_terms(block: dict, f: float, k: float):
     aperture, a ramp and curvature over the window; the squares are a tilt's astigmatism, ~0.4 rad over the window
     at 0.1 rad), the squares' log-amplitude (|q e^2| <= ~1e-2 over a block; exact, it made the aperture moments'
     gamma vary per sample, ~3x the kernel's cost), the cross and higher terms to first order, as the monomials e_x^a e_y^b, 2 <= a + b <= 4 (``_rs_factors``; phi's
-    Taylor coefficients at rho_c). Returns (c0 (re, im) (m, B), g (re, im) (m, B, 2), the squares'
-    coefficients q (re, im) (m, B, 2), the remainder's {(a, b): (re, im)}) in real arithmetic."""
+    Taylor coefficients at rho_c). Returns (c0 (re, im) (m, B), g (re, im) (m, B, 2), the squares' phase
+    coefficients q (m, B, 2), the remainder's {(a, b): (re, im)}) in real arithmetic."""
     rc, rs = block["rs_c"], block["rs_star"]
     A, As = (rc**2).sum(-1), (rs**2).sum(-1)
     r, r_s = np.sqrt(f * f + A), np.sqrt(f * f + As)
@@ -331,14 +331,12 @@ def _rs_terms(block: dict, f: float, k: float):
     F = f * f + A
     g = (-2 * rc / F[..., None], k * (dphi_c - dphi_s))
     # half the Hessians of ln(f^2 / r^2) and of phi: -I / F + 2 rho rho^T / F^2 and ((1/r - 1/f) I - rho rho^T / r^3) / 2
-    q = (-1 / F[..., None] + 2 * rc * rc / (F * F)[..., None],
-         0.5 * k * (-(A / (r * f * (r + f)))[..., None] - rc * rc / (r**3)[..., None]))
+    q_amp = -1 / F[..., None] + 2 * rc * rc / (F * F)[..., None]  # to first order, with the remainder
+    q = 0.5 * k * (-(A / (r * f * (r + f)))[..., None] - rc * rc / (r**3)[..., None])
     u, v = rc[..., 0], rc[..., 1]
     r3, r5, r7 = r**3, r**5, r**7
-    qr = q[0]  # the log-amplitude's squares, |q e^2| <= ~1e-2 over a block: to first order, with the remainder (an
-    q = (np.zeros_like(qr), q[1])  # exact exp(q_r e^2) put a per-sample gamma into every sub-aperture's moments)
     # phi's third and fourth derivatives over a! b!
-    rem = {(1, 1): (4 * u * v / (F * F), -k * u * v / r3), (2, 0): (qr[..., 0], 0 * u), (0, 2): (qr[..., 1], 0 * v),
+    rem = {(1, 1): (4 * u * v / (F * F), -k * u * v / r3), (2, 0): (q_amp[..., 0], 0 * u), (0, 2): (q_amp[..., 1], 0 * v),
            (3, 0): (0 * u, k * (-u / (2 * r3) + u**3 / (2 * r5))), (0, 3): (0 * v, k * (-v / (2 * r3) + v**3 / (2 * r5))),
            (2, 1): (0 * v, 0.5 * k * (-v / r3 + 3 * u * u * v / r5)), (1, 2): (0 * u, 0.5 * k * (-u / r3 + 3 * u * v * v / r5)),
            (4, 0): (0 * u, k * (-1 / (8 * r3) + 3 * u * u / (4 * r5) - 5 * u**4 / (8 * r7))),
@@ -425,9 +423,9 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
         # exp(g e + q e^2), e = x - p t per axis: over the window exp(g x + q x^2), over the aperture a tilt
         # exp(-(g + 2 q x) p t) and a curvature exp(q p^2 t^2)
         x4 = xs[:, None]  # (m, 1, S, 2)
-        arg = arg + (p / (2 * np.pi)) * (g[1][:, :, None, :] + 2 * q[1][:, :, None, :] * x4)  # (m, B, S, 2)
-        ramp = ramp + (g[1][:, :, None, :] * x4 + q[1][:, :, None, :] * x4 * x4)[..., None]
-        alpha = alpha + p * p * q[1][:, :, None, :]
+        arg = arg + (p / (2 * np.pi)) * (g[1][:, :, None, :] + 2 * q[:, :, None, :] * x4)  # (m, B, S, 2)
+        ramp = ramp + (g[1][:, :, None, :] * x4 + q[:, :, None, :] * x4 * x4)[..., None]
+        alpha = alpha + p * p * q[:, :, None, :]
     if "gam" in block:  # the irradiance gradient and curvature across each sub-aperture (its own weighting)
         gam, dlt = block["gam"][:, :, None, :], block["dlt"][:, :, None, :]
         if rs:  # one (gamma, delta) per sub-aperture and axis, not per sample: the aperture kernel's cache holds

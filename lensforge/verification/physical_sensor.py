@@ -340,33 +340,25 @@ class _Knots:
     def size(self) -> int:
         return len(self.t) - self.k - 1
 
-    def local(self, x: np.ndarray, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """(first basis index (n,), values (n, k + 1) of the k + 1 basis functions nonzero at x (or their nu-th
-        derivatives)): the B-spline's local support, x clipped into [lo, hi]."""
+    def dense(self, x: np.ndarray, nu: int = 0) -> np.ndarray:
+        """(n, size) basis values (or their nu-th derivatives) at x, clipped into [lo, hi] (scipy's BSpline with the
+        identity as coefficients: every basis function at once)."""
         from scipy.interpolate import BSpline
 
-        t, k = self.t, self.k
         x = np.clip(np.asarray(x, float), self.lo, self.hi)
-        span = np.clip(np.searchsorted(t, x, side="right") - 1, k, len(t) - k - 2)
-        first = span - k
-        vals = np.empty((x.size, k + 1))
-        for j in range(k + 1):  # basis function first + j, evaluated where it is nonzero
-            c = np.zeros(self.size)
-            out = np.zeros(x.size)
-            for i in np.unique(first + j):
-                c[i] = 1.0
-                sel = first + j == i
-                out[sel] = BSpline(t, c, k, extrapolate=False)(x[sel], nu)
-                c[i] = 0.0
-            vals[:, j] = np.nan_to_num(out)
-        return first, vals
+        return BSpline(self.t, np.eye(self.size), self.k)(x, nu)
 
-    def dense(self, x: np.ndarray, nu: int = 0) -> np.ndarray:
-        """(n, size) basis values (or nu-th derivatives) at x."""
-        first, vals = self.local(x, nu)
-        out = np.zeros((x.size, self.size))
-        np.put_along_axis(out, first[:, None] + np.arange(self.k + 1), vals, axis=1)
-        return out
+    def local(self, x: np.ndarray, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(first basis index (n,), values (n, k + 1)) of the k + 1 basis functions nonzero at x (their local
+        support) or of their nu-th derivatives."""
+        x = np.clip(np.asarray(x, float), self.lo, self.hi)
+        first = np.clip(np.searchsorted(self.t, x, side="right") - 1, self.k, self.size - 1) - self.k
+        return first, np.take_along_axis(self.dense(x, nu), first[:, None] + np.arange(self.k + 1), axis=1)
+
+
+def _spline_eval(kx: _Knots, ky: _Knots, C: np.ndarray, X: np.ndarray, nx: int = 0, ny: int = 0) -> np.ndarray:
+    """d^(nx + ny) s / dx^nx dy^ny (n,) of the tensor-product spline C (``_spline_fit``) at the points X (n, 2)."""
+    return np.einsum("nb,ba,na->n", ky.dense(X[:, 1], ny), C, kx.dense(X[:, 0], nx))
 
 
 def _spline_fit(kx: _Knots, ky: _Knots, X: np.ndarray, rows: list[tuple[np.ndarray, int, int]]) -> tuple:
@@ -486,25 +478,24 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     if rms * 1e6 > POTENTIAL_TOL_URAD:
         raise ConfigError(f"physical sensor: the ray field's potential misses the traced slopes by {rms * 1e6:.2f} urad "
                           f"RMS (> {POTENTIAL_TOL_URAD}): use a smaller potential_knot_mm or a larger ray_grid")
-    CI, _ = _spline_fit(kx, ky, Xf, [(np.log(I_beam[ok] / det[ok]), 0, 0)])
+    log_i = np.log(I_beam[ok] / det[ok])
+    CI, _ = _spline_fit(kx, ky, Xf, [(log_i, 0, 0)])
     x = _grid(sensor, cfg, cx, cy)
     bx, by = _box_slices(x, sensor, cx, cy)
     Bx, By = kx.dense(x[bx]), ky.dense(x[by])
     k = 2 * np.pi / lam
-    rows = _row_chunks(len(x[by]))
-    lit = [_lit_cells(x[bx], x[by][c], cx, cy, model, cfg) for c in rows]
-    log_max = max(float(np.max(np.where(m > 0, By[c] @ CI @ Bx.T, -np.inf), initial=-np.inf))
-                  for c, m in zip(rows, lit))
+    log_max = float(log_i.max())  # a scale: the brightest fitted ray at 1
     E = np.zeros((len(x), len(x)), complex)
     box = E[by, bx]  # a view, filled a chunk of rows at a time
-    for c, m in zip(rows, lit):
+    for c in _row_chunks(len(x[by])):
         S = By[c] @ Cs @ Bx.T
-        logI = np.minimum(By[c] @ CI @ Bx.T - log_max, 0.0)
-        box[c] = np.exp(0.5 * logI + 1j * k * S) * m
+        # capped: the box's dark corners hold no rays, and the spline is free to grow there (the lit cells stay
+        # within the fit's error of <= 0)
+        logI = np.minimum(By[c] @ CI @ Bx.T - log_max, 2.0)
+        box[c] = np.exp(0.5 * logI + 1j * k * S) * _lit_cells(x[bx], x[by][c], cx, cy, model, cfg)
     # expected spot start: the local ray slope (tan) at each pupil lenslet centre
     c = model.pupil.centres
-    Lc = np.einsum("nb,ba,na->n", ky.dense(c[:, 1]), Cs, kx.dense(c[:, 0], 1))
-    Mc = np.einsum("nb,ba,na->n", ky.dense(c[:, 1], 1), Cs, kx.dense(c[:, 0]))
+    Lc, Mc = _spline_eval(kx, ky, Cs, c, nx=1), _spline_eval(kx, ky, Cs, c, ny=1)
     Nc = np.sqrt(np.clip(1 - Lc**2 - Mc**2, 1e-12, None))
     return MlaField(x, E, np.stack([Lc / Nc, Mc / Nc], 1), rms, mx)
 
