@@ -39,6 +39,7 @@ import numpy as np
 
 import lensforge as lf
 from lensforge.calibration.session import load_design_lens
+from lensforge.errors import ConfigError
 from lensforge.optics.shack_hartmann import ForwardModel
 from lensforge.fileio import check_output, write_atomic
 from lensforge.verification.physical_sensor import PhysicalSensor, physical_measure
@@ -84,17 +85,68 @@ def _worst(sig, modes) -> str:
     return f"{sig[i]:+5.1f}(Z{modes[i]})"
 
 
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not a number")
+
+
+def load_compare(path: str) -> dict:
+    """A compare JSON (this script's --json of a compare run), checked: every key 'label/variant' with its Noll
+    ``modes`` and ``rows`` of a finite 6-vector ``pose`` and finite ``z_physical_um`` / ``z_model_um`` per mode.
+    A bad file is a ConfigError naming the file, the entry and the fix."""
+    fix = "give the --json file a compare run wrote (--lenses/--design ... --json FILE)"
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh, parse_constant=_reject_constant)
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read it ({e.strerror}): {fix}") from None
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not valid JSON ({e}): {fix}") from None
+    if not isinstance(d, dict) or not d:
+        raise ConfigError(f"{path}: no compare entries: {fix}")
+    for key, r in d.items():
+        where = f"{path}: entry {key!r}"
+        if key.count("/") != 1 or not isinstance(r, dict):
+            raise ConfigError(f"{where}: not a 'label/variant' compare entry: {fix}")
+        modes, rows = r.get("modes"), r.get("rows")
+        if not (isinstance(modes, list) and modes and all(isinstance(m, int) for m in modes)):
+            raise ConfigError(f"{where}: 'modes' must be a list of Noll indices: {fix}")
+        if not (isinstance(rows, list) and rows):
+            raise ConfigError(f"{where}: 'rows' must be a non-empty list of poses: {fix}")
+        for i, row in enumerate(rows):
+            for field, n in (("pose", 6), ("z_physical_um", len(modes)), ("z_model_um", len(modes))):
+                v = row.get(field) if isinstance(row, dict) else None
+                ok = isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) for x in v)
+                if not ok or not np.all(np.isfinite(v)):
+                    raise ConfigError(f"{where}: rows[{i}].{field} must be {n} finite numbers: {fix}")
+    return d
+
+
+def _check_modes(path: str, key: str, r: dict, model: ForwardModel) -> None:
+    if list(model.modes) != r["modes"]:
+        raise ConfigError(f"{path}: entry {key!r}: its modes {r['modes']} are not the model's {model.modes.tolist()}: "
+                          "the file was written for another bench or Zernike order; rerun the compare")
+
+
+def _entry_lens(path: str, key: str, design: str | None):
+    """(variant, lens, bench) of a compare entry 'label/variant': the label's paper lens, or the --design file's."""
+    label, variant = key.split("/")
+    if variant not in VARIANTS:
+        raise ConfigError(f"{path}: entry {key!r}: unknown variant {variant!r} (one of {sorted(VARIANTS)})")
+    if label == "design" and not design:
+        raise ConfigError(f"{path}: entry {key!r} is a design's: give its file with --design")
+    return (variant, *load_design_lens(design if label == "design" else label))
+
+
 def validate(path: str, design: str | None, models=("neighbours", "cells")) -> dict:
     """The fast cross-talk models (sensor.crosstalk, ``models``) at the poses of a compare() JSON: per pose
     max |dz|/sigma of the old model (the compare run's own-centroid model) and of each, against the physical
     reference."""
-    d = json.load(open(path))
+    d = load_compare(path)
     out = {}
     for key, r in d.items():
-        label, variant = key.split("/")
+        variant, lens, bench = _entry_lens(path, key, design)
         if variant in ("noxtalk", "round"):  # a diagnostic / an aperture the fast model does not have
             continue
-        lens, bench = load_design_lens(design if label == "design" else label)
         sensor_changes, _ = VARIANTS[variant]
         changes = dict(sensor_changes)
         laser = changes.pop("laser", None)
@@ -104,6 +156,7 @@ def validate(path: str, design: str | None, models=("neighbours", "cells")) -> d
         for mname in models:
             b = bench.replace(sensor={**changes, "crosstalk": mname}, **({"laser": laser} if laser else {}))
             model = ForwardModel(b, lens)
+            _check_modes(path, key, r, model)
             sig = np.sqrt(np.diag(model.noise_cov))
             t0 = time.perf_counter()
             z_new = model.evaluate(poses, check_range=False).z
@@ -122,23 +175,25 @@ def validate(path: str, design: str | None, models=("neighbours", "cells")) -> d
     return out
 
 
-def pose_bias(path: str, models=("none", "cells")) -> dict:
+def pose_bias(path: str, models=("none", "cells"), design: str | None = None) -> dict:
     """The Table-1 analogue on the physical sensor: each pose of a compare() JSON estimated from the physical
     reference's noise-free Zernikes with each sensor model (started at the truth); the error in units of the
-    estimate's own 1-sigma per DOF and its NEES (6 DOF; noise-free data: 0 for a model that matched the physics)."""
+    estimate's own 1-sigma per DOF and its NEES (6 DOF; noise-free data: 0 for a model that matched the physics).
+    design: the design file of the JSON's 'design/...' entries (as --validate)."""
     from lensforge.calibration.pose_estimation import estimate_poses_batch
 
-    d = json.load(open(path))
+    d = load_compare(path)
     out = {}
     for key, r in d.items():
-        label, variant = key.split("/")
+        variant, lens, bench = _entry_lens(path, key, design)
         if variant != "base":
             continue
-        lens, bench = load_design_lens(label)
+        label = key.split("/")[0]
         poses = np.array([row["pose"] for row in r["rows"]])
         z = np.array([row["z_physical_um"] for row in r["rows"]])
         for mname in models:
             model = ForwardModel(bench.replace(sensor={"crosstalk": mname}), lens)
+            _check_modes(path, key, r, model)
             est = estimate_poses_batch(model, z, poses)
             sig = np.sqrt(np.einsum("pii->pi", est.cov))
             err = (est.poses - poses) / sig
@@ -183,7 +238,6 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
     from lensforge.optics.centroid import cell_crosstalk_slopes, centroid_slopes, crosstalk_slopes, lit_lenslets
     from lensforge.verification.physical_sensor import analytic_wave_quadratures, field_slopes, plane_field
 
-    from lensforge.errors import ConfigError
 
     bench = load_design_lens(design)[1] if design else lf.Bench.default()
     if np.hypot(*beam_offset_mm) >= 0.5 * bench.laser.beam_diameter_mm:
@@ -286,7 +340,7 @@ def main(argv=None):
         cost()
         return
     if a.pose_bias:
-        out = pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")))
+        out = pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")), a.design)
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return
