@@ -8,6 +8,7 @@ from lensforge.calibration.pose_design import (
     candidate_poses,
     design_poses,
     predicted_uncertainty,
+    z_translation_std,
 )
 from lensforge.calibration.handeye import handeye_fisher
 from lensforge.calibration.robot import (
@@ -59,3 +60,18 @@ def test_design_errors():
         design_poses(s, COV_B, n=2, rng=np.random.default_rng(0))
     with pytest.raises(ConfigError, match="candidates"):
         design_poses(s, COV_B, rng=np.random.default_rng(0), candidates=np.zeros((5, 6)))
+
+
+def test_z_translation_std_is_inf_where_a_random_plan_loses_z():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(3, 14, 20))
+    F = A @ A.transpose(0, 2, 1)
+    want = [np.sqrt(np.trace(np.linalg.inv(f)[6:9, 6:9])) for f in F]
+    np.testing.assert_allclose(z_translation_std(F), want, rtol=1e-9)
+    B = rng.normal(size=(2, 14, 10))  # rank 10 < 14: Z's translation is not observable
+    assert np.all(np.isinf(z_translation_std(B @ B.transpose(0, 2, 1))))
+    # lost only in X's rotation: Z keeps its finite sigma (the pinv's value there)
+    G = F[0].copy()
+    G[3, :] = G[:, 3] = 0.0
+    sub = np.delete(np.delete(G, 3, 0), 3, 1)
+    assert z_translation_std(G[None])[0] == pytest.approx(np.sqrt(np.trace(np.linalg.inv(sub)[5:8, 5:8])), rel=1e-9)

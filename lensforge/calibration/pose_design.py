@@ -26,7 +26,8 @@ from ..errors import ConfigError
 from .handeye import handeye_jacobian, residual_covariances, whiteners
 from .robot import Scene, flange_pose, lens_pose_matrix, random_lens_poses
 
-__all__ = ["DesignResult", "design_poses", "predicted_uncertainty", "candidate_poses", "information_factors"]
+__all__ = ["DesignResult", "design_poses", "predicted_uncertainty", "candidate_poses", "information_factors",
+           "z_translation_std"]
 
 
 def candidate_poses(rng: np.random.Generator, n_random: int = 436, translation_mm: float = 1.0,
@@ -59,6 +60,19 @@ def _summary(F: np.ndarray) -> dict:
         "Z_translation_mm": float(np.sqrt(d[6:9].sum())),
         "Z_rotation_rad": float(np.sqrt(d[9:12].sum())),
     }
+
+
+def z_translation_std(F: np.ndarray, rtol: float = 1e-12) -> np.ndarray:
+    """RMS Z translation 1-sigma (mm) of a stack of information matrices (m, G, G) with X in
+    0:6 and Z in 6:12. A random plan may be singular: where a lost direction (eigenvalue below
+    rtol * the largest) reaches Z's translation, that set's sigma is inf, not the pseudo-inverse's
+    finite (or, with rounding, negative) trace that a pinv would give."""
+    w, V = np.linalg.eigh(F)
+    lost = w <= rtol * w[..., -1:]
+    Vz = V[..., 6:9, :]
+    reach = np.any(lost & np.any(np.abs(Vz) > 1e-6, axis=-2), axis=-1)
+    var = np.sum(np.where(lost[..., None, :], 0.0, Vz ** 2 / np.where(lost, 1.0, w)[..., None, :]), axis=(-2, -1))
+    return np.where(reach, np.inf, np.sqrt(var))
 
 
 def predicted_uncertainty(scene: Scene, x, cov_B, sigma=None) -> dict:

@@ -42,7 +42,7 @@ from .cell_plausibility import check_cell_poses
 from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
 from .joint_design import candidate_information, design_joint_poses, predicted_joint_uncertainty
 from .pipeline import METHODS, estimate_one, run
-from .pose_design import candidate_poses
+from .pose_design import candidate_poses, z_translation_std
 from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
                            check_wfs_values, job_memory_bytes, pose_file_kind, MAX_ROWS)
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
@@ -187,7 +187,8 @@ class Plan:
             "predicted_Z_rotation_rms_deg": float(self.predicted["Z_rotation_deg"]),
             "predicted_Z_translation_rms_known_lens_mm": float(self.predicted["Z_translation_known_lens_mm"]),
             "predicted_Z_rotation_rms_known_lens_deg": float(self.predicted["Z_rotation_known_lens_deg"]),
-            "random_over_designed_Z_translation": float(self.random_ratio),
+            # null: most random plans of this size leave Z's translation unobservable
+            "random_over_designed_Z_translation": float(self.random_ratio) if math.isfinite(self.random_ratio) else None,
             "poses": [{"pose": i, "lens_pose": {"tx_mm": p[0], "ty_mm": p[1], "tz_mm": p[2], "rx_rad": p[3],
                                                  "ry_rad": p[4], "rz_rad": p[5]},
                        "flange_xyzabc": formats.matrix_to_xyzabc(a).tolist(), "joints_deg": np.degrees(q).tolist()}
@@ -305,7 +306,7 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     Iu = candidate_information(search, param, scene, cand[used], robot.noise.cov)[0]
     F = Iu[inverse.reshape(sets.shape)].sum(axis=1)
     F[:, 12:, 12:] += np.eye(param.k)  # theta's N(0, I) prior
-    rand = [float(np.sqrt(np.trace(np.linalg.pinv(f, hermitian=True)[6:9, 6:9]))) for f in F]
+    rand = z_translation_std(F)
     random_ratio = float(np.median(rand)) / res.chosen["Z_translation_mm"]  # both on the search model
     if search is not bench:
         stage("plan: predicting the chosen poses with the cross-talk sensor model")

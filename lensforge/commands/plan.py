@@ -71,7 +71,9 @@ def plan_cmd(
         info(f"  predicted Z 1-sigma, {label}: translation {s['tx_mm'] * 1e3:.1f} {s['ty_mm'] * 1e3:.1f} "
              f"{s['tz_mm'] * 1e3:.1f} um, rotation {s['rx_deg'] * 1e3:.1f} {s['ry_deg'] * 1e3:.1f} "
              f"{s['rz_deg'] * 1e3:.1f} mdeg ({{S}} axes)")
-    info(f"  random poses would give {d['random_over_designed_Z_translation']:.2f}x the Z translation error")
+    r = d["random_over_designed_Z_translation"]
+    info(f"  random poses would give {r:.2f}x the Z translation error" if r is not None
+         else "  most random sets of as many poses would leave Z's translation unobservable")
     info("files: " + ", ".join(str(v) for v in paths.values()))
     if json_out:
         emit_json({**d, "files": {k: str(v) for k, v in paths.items()}})
