@@ -163,6 +163,33 @@ def test_cells_kernel_propagates_as_the_rayleigh_sommerfeld_integral():
         np.testing.assert_allclose(got[i], want, rtol=0, atol=0.03 * effect)  # 0.2-1.8 % measured
 
 
+def test_cells_windows_follow_the_tracking_rule():
+    # the first window on start (default the spot), re-centred on the centroid; the model starts on the reference
+    # spot plus f times the slope, as the physical reference does: where a spot lies within the window's truncation
+    # bias of a half-pixel boundary, the start picks one of two stable windows (70 urad apart on the default design)
+    sensor = Sensor()
+    pupil, centres, neighbours, cells = _random_block(sensor, 3, 1, 0.01, 0.01)
+    n, f, pix = len(pupil), sensor.lenslet_focal_mm, sensor.pixel_mm
+    spot = centres[:n] + f * cells["tilt"][:n]
+    args = (cells, centres, neighbours, sensor, 532.0)
+    d0, st0 = centroid.cell_shift(spot, *args, iterations=0, return_windows=True)
+    d1, st1 = centroid.cell_shift(spot, *args, iterations=0, return_windows=True, start=spot + [pix, -2 * pix])
+    np.testing.assert_array_equal(st1 - st0, np.broadcast_to([1, -2], st0.shape))
+    assert np.abs(d1 - d0).max() > 1e-6  # a window off the spot truncates it elsewhere: > 1 nm
+    np.testing.assert_array_equal(centroid.cell_shift(spot, *args, iterations=0, start=spot), d0)
+    # the model's windows: started on the reference spot plus f times the slope
+    q, w = np.array([[-0.25, -0.25], [0.25, -0.25], [-0.25, 0.25], [0.25, 0.25]]), np.full(4, 0.25)
+    sq = cells["tilt"][:, None, :] + np.einsum("lij,qj->lqi", cells["K"], sensor.pitch_mm * q)
+    wi = np.broadcast_to(w, (len(centres), 4))  # uniform irradiance: no gradient, no curvature of ln I
+    _, st = centroid.cell_crosstalk_slopes(sq, wi, q, w, centres, neighbours, sensor, 532.0, return_windows=True)
+    ref = centroid.cell_reference_shift(sensor, 532.0, centres, neighbours)
+    tilt, K, g, ln_a, lit = centroid.cell_fields(sq, wi, q, w, sensor.pitch_mm)
+    m = centres[:n] + f * tilt[:n]
+    own = {"tilt": tilt, "K": K, "g": g, "h": np.zeros_like(g), "ln_a": ln_a, "lit": lit}
+    _, want = centroid.cell_shift(m, own, centres, neighbours, sensor, 532.0, return_windows=True, start=m + ref)
+    np.testing.assert_array_equal(st, want)
+
+
 def test_lit_lenslets_are_the_pupils_rings():
     sensor = Sensor()
     bench = lf.Bench.default()  # the default pupil's lenslets

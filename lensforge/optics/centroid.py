@@ -45,7 +45,7 @@ from .aperture import square_aperture_moments
 from .bench import CROSSTALK_MODELS, Sensor
 
 __all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "centroid_slope_derivatives", "CROSSTALK_MODELS",
-           "crosstalk_shift", "reference_shift", "local_field", "crosstalk_slopes",
+           "crosstalk_shift", "reference_shift", "local_field", "crosstalk_slopes", "TRACKING_ITERATIONS",
            "crosstalk_slope_derivatives", "LOCAL_INPUTS"]
 
 
@@ -254,16 +254,17 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
 
 
 def _tracked_window_shift(spot: np.ndarray, block: dict, sensor: Sensor, wavelength_nm: float, iterations: int,
-                          sub: int, centroid, st: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                          sub: int, centroid, st: np.ndarray | None = None,
+                          start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(centroid minus spot (m, 2) mm, window first pixels (m, 2)) of m lenslets whose blocks are ``block``
-    (``_local_block``): the whole-pixel window on the spot, re-centred on its centroid ``iterations`` times
-    (recomputed only for the lenslets whose window moved), or the frozen windows st; centroid:
-    ``_window_centroid`` or ``_separable_centroid``."""
+    (``_local_block``): the whole-pixel window on start (default the spot), re-centred on its centroid
+    ``iterations`` times (recomputed only for the lenslets whose window moved), or the frozen windows st;
+    centroid: ``_window_centroid`` or ``_separable_centroid``."""
     if st is not None:
         return centroid(spot, block, st, sensor, wavelength_nm, sub) - spot, st
     pix, W = sensor.pixel_mm, int(sensor.centroid_window_px)
     edge0 = float(sensor.camera_offset_px) * pix
-    st = _window_start(spot, edge0, pix, W)
+    st = _window_start(spot if start is None else np.real(start), edge0, pix, W)
     pos = centroid(spot, block, st, sensor, wavelength_nm, sub)
     for _ in range(iterations):
         st_new = _window_start(pos, edge0, pix, W)
@@ -662,6 +663,12 @@ def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray,
 # neighbours' ~1/distance sinc tails); at ring 5, 2 / 4 / 8 samples per pixel: 1.7-4.2 / 0.55-0.75 / 0.48-0.73 urad
 CELL_RING = 4
 CELL_SUB = 4
+# window re-centrings of the 'tracking' rule (ASSUMPTION, the device's algorithm is not published): the first window
+# on the reference spot plus f times the slope, then on the centroid this many times. A spot within the window's
+# truncation bias (~0.07 px at the defaults) of a half-pixel boundary has two stable windows, and the start picks one:
+# 'cells' started on the lenslet centre (not the reference spot) and re-centred once, and 12 of the default design's
+# 1709 lenslets at its plan pose took the other window than the physical reference's, 70 urad each, 1.2 sigma of Z3
+TRACKING_ITERATIONS = 3
 
 
 def _index_of(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -793,12 +800,13 @@ def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centr
 
 
 def cell_shift(spot: np.ndarray, cells: dict, lit_centres: np.ndarray, neighbours: np.ndarray, sensor: Sensor,
-               wavelength_nm: float, iterations: int = 1, windows: np.ndarray | None = None,
-               return_windows: bool = False, exact: bool = True):
+               wavelength_nm: float, iterations: int = TRACKING_ITERATIONS, windows: np.ndarray | None = None,
+               return_windows: bool = False, exact: bool = True, start: np.ndarray | None = None):
     """Centroid minus spot (..., n, 2) mm of each pupil lenslet's pixel window under the coherent sum of the fields of
     the lit lenslets of its block (``lit_lenslets``), each with its own tilt, curvature, irradiance gradient and
     amplitude (``cell_fields``; cells[...]: (..., L, ...)), the pistons between them from their slopes; spot
-    (..., n, 2) the own spots. Windows placed and re-centred as ``crosstalk_shift`` (frozen ones: ``windows``).
+    (..., n, 2) the own spots. Windows placed on start (..., n, 2) (default the spots) and re-centred on the centroid
+    ``iterations`` times (frozen ones: ``windows``).
     exact: the propagation to the camera as the Rayleigh-Sommerfeld integral (``_rs_terms``, what the angular
     spectrum's exact transfer function does), False: its Fresnel approximation (the field the kernel is built on).
     What exact changes, against the full-array reference (co-designed bench, spp 4): a diverging wave (R = -100 mm)
@@ -815,11 +823,13 @@ def cell_shift(spot: np.ndarray, cells: dict, lit_centres: np.ndarray, neighbour
     out = np.empty(sp.shape, dtype=np.result_type(spot, *[v.dtype for v in flat.values()]))
     st_all = np.empty(sp.shape)
     frozen = None if windows is None else np.broadcast_to(windows, lead + (n, 2)).reshape(-1, 2)
+    first = None if start is None else np.broadcast_to(start, spot.shape).reshape(-1, 2)
     for a in range(0, len(rows), _XT_CHUNK):
         c = slice(a, a + _XT_CHUNK)
         block = _cell_block(rows[c], flat, neighbours, lit_centres, sensor, wavelength_nm, exact)
         out[c], st_all[c] = _tracked_window_shift(sp[c], block, sensor, wavelength_nm, iterations, CELL_SUB,
-                                                  _window_centroid, None if frozen is None else frozen[c])
+                                                  _window_centroid, None if frozen is None else frozen[c],
+                                                  None if first is None else first[c])
     out = out.reshape(lead + (n, 2))
     return (out, st_all.reshape(lead + (n, 2))) if return_windows else out
 
@@ -861,8 +871,9 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit}
     s = tilt[..., :n, :]
     spot = lit_centres[:n] + f * s
-    d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
-                       return_windows=True)
     ref = cell_reference_shift(sensor, wavelength_nm, lit_centres, neighbours)
+    # the tracking rule's first window: on the reference spot plus f times the slope (``TRACKING_ITERATIONS``)
+    d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
+                       return_windows=True, start=spot + ref)
     out = s + (d - ref) / f
     return (out, st) if return_windows else out

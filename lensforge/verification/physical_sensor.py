@@ -27,7 +27,7 @@ trace and lensforge's Zernike fit matrix.
    Neighbours' light falls into every window and interferes there.
 4. Centroids: per pupil lenslet a ``sensor.centroid_window_px`` square window placed on
    whole pixels on the expected spot ('tracking', ASSUMPTION of the algorithm: start at
-   the reference spot plus f times the local ray slope, then re-centre on the
+   the reference spot plus f times the lenslet's mean ray slope, then re-centre on the
    centroid, ``tracking_iterations`` times); ``sensor.centroid_threshold`` x the
    window's peak is subtracted (the per-spot noise cut) before the first moment.
 5. Reference spot field: 'factory' (a uniform plane wave at normal incidence through
@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
 from ..input_checks import BENCH_RANGES, number
+from ..optics.centroid import TRACKING_ITERATIONS
 from ..optics.bench import Bench, Sensor
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, aim_rays, trace_rays
@@ -106,7 +107,7 @@ class PhysicalSensor:
     potential_knot_mm: float = 0.2
     ray_grid: int = 160
     reference: str = "factory"
-    tracking_iterations: int = 3
+    tracking_iterations: int = TRACKING_ITERATIONS
     oversample: int = 1
     lit_stride: int = 1
     window_px: int | None = None
@@ -493,11 +494,17 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
         # within the fit's error of <= 0)
         logI = np.minimum(By[c] @ CI @ Bx.T - log_max, 2.0)
         box[c] = np.exp(0.5 * logI + 1j * k * S) * _lit_cells(x[bx], x[by][c], cx, cy, model, cfg)
-    # expected spot start: the local ray slope (tan) at each pupil lenslet centre
-    c = model.pupil.centres
-    Lc, Mc = _spline_eval(kx, ky, Cs, c, nx=1), _spline_eval(kx, ky, Cs, c, ny=1)
-    Nc = np.sqrt(np.clip(1 - Lc**2 - Mc**2, 1e-12, None))
-    return MlaField(x, E, np.stack([Lc / Nc, Mc / Nc], 1), rms, mx)
+    # expected spot start: each pupil lenslet's mean ray slope (tan), 4 x 4 Gauss-Legendre over its cell (the
+    # slope at the centre differs by the slope's curvature, and where a spot sits within the window's truncation
+    # bias of a half-pixel boundary the start picks its window: ``centroid.TRACKING_ITERATIONS``)
+    t, w = np.polynomial.legendre.leggauss(4)
+    off = 0.5 * sensor.pitch_mm * np.stack(np.meshgrid(t, t, indexing="xy"), -1).reshape(-1, 2)
+    wq = np.outer(w, w).ravel() / 4.0
+    q = (model.pupil.centres[:, None, :] + off[None]).reshape(-1, 2)
+    Lq, Mq = _spline_eval(kx, ky, Cs, q, nx=1), _spline_eval(kx, ky, Cs, q, ny=1)
+    Nq = np.sqrt(np.clip(1 - Lq**2 - Mq**2, 1e-12, None))
+    tan = np.stack([Lq / Nq, Mq / Nq], 1).reshape(-1, len(wq), 2)
+    return MlaField(x, E, np.einsum("q,nqk->nk", wq, tan), rms, mx)
 
 
 def samples_needed(bench: Bench, cfg: PhysicalSensor, max_slope: float) -> int:
