@@ -53,7 +53,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
 from ..input_checks import BENCH_RANGES, number
-from ..optics.centroid import TRACKING_ITERATIONS
+from ..optics.centroid import TRACKING_ITERATIONS, quadrature_rule
 from ..optics.bench import Bench, Sensor
 from ..optics.shack_hartmann import ForwardModel
 from ..optics.trace import OK, aim_rays, trace_rays
@@ -497,10 +497,8 @@ def ray_field(model: ForwardModel, pose, cfg: PhysicalSensor) -> MlaField:
     # expected spot start: each pupil lenslet's mean ray slope (tan), 4 x 4 Gauss-Legendre over its cell (the
     # slope at the centre differs by the slope's curvature, and where a spot sits within the window's truncation
     # bias of a half-pixel boundary the start picks its window: ``centroid.TRACKING_ITERATIONS``)
-    t, w = np.polynomial.legendre.leggauss(4)
-    off = 0.5 * sensor.pitch_mm * np.stack(np.meshgrid(t, t, indexing="xy"), -1).reshape(-1, 2)
-    wq = np.outer(w, w).ravel() / 4.0
-    q = (model.pupil.centres[:, None, :] + off[None]).reshape(-1, 2)
+    off, wq = quadrature_rule(4)
+    q = (model.pupil.centres[:, None, :] + sensor.pitch_mm * off[None]).reshape(-1, 2)
     Lq, Mq = _spline_eval(kx, ky, Cs, q, nx=1), _spline_eval(kx, ky, Cs, q, ny=1)
     Nq = np.sqrt(np.clip(1 - Lq**2 - Mq**2, 1e-12, None))
     tan = np.stack([Lq / Nq, Mq / Nq], 1).reshape(-1, len(wq), 2)
