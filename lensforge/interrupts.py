@@ -215,6 +215,16 @@ def sigint_guard(grace_s: float = 1.2):
         threading.Thread(target=st.watchdog, name="lensforge-sigint-watchdog", daemon=True).start()
         raise Terminated() if signum == signal.SIGTERM else Interrupted()
 
+    def unraisable(info):
+        # the handler's exception can land where Python ignores exceptions (a weakref callback
+        # inside importlib's module locks, a __del__) and prints "Exception ignored in" with a
+        # traceback; the interrupt is then lost. End the command the way the watchdog would.
+        if isinstance(info.exc_value, Interrupted):
+            hard_exit(st.code)
+        old_hook(info)
+
+    old_hook = sys.unraisablehook
+    sys.unraisablehook = unraisable
     old = None if int_ignored else signal.signal(signal.SIGINT, handler)
     old_term = signal.getsignal(signal.SIGTERM)
     if old_term is not signal.SIG_IGN:
@@ -222,6 +232,7 @@ def sigint_guard(grace_s: float = 1.2):
     try:
         yield lambda: st.count > 0
     finally:
+        sys.unraisablehook = old_hook
         if not int_ignored:
             signal.signal(signal.SIGINT, old)
         if old_term is not signal.SIG_IGN:

@@ -216,3 +216,30 @@ def test_a_killed_command_leaves_no_staged_temp(tmp_path):
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert r.returncode != 0 and "SIGKILL" in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt"]
+
+
+def test_interrupt_inside_a_weakref_callback_is_one_line():
+    """A signal whose handler runs inside a callback where Python ignores exceptions (importlib's
+    module-lock weakref callback, seen once in CI during Ctrl-C at startup) ends the command with
+    the one line and 130, not an "Exception ignored in" traceback."""
+    prog = """
+import os, signal, sys, time, weakref
+from lensforge.interrupts import sigint_guard
+class A: pass
+with sigint_guard():
+    a = A()
+    def cb(ref):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000): pass
+    r = weakref.ref(a, cb)
+    del a
+    time.sleep(10)
+print("not reached")
+"""
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-c", prog], capture_output=True, text=True, timeout=30,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert p.returncode == 130, p
+    assert p.stderr.strip() == "error: interrupted", p.stderr
+    assert "not reached" not in p.stdout
+    assert time.monotonic() - t0 < 8
