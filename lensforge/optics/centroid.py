@@ -171,6 +171,13 @@ def _neighbour_offsets(ring: int) -> np.ndarray:
     return np.stack([X.ravel(), Y.ravel()], axis=1)  # (B, 2), the own lenslet included
 
 
+# window re-centrings of the 'tracking' rule (ASSUMPTION, the device's algorithm is not published): the first window
+# on the reference spot plus f times the slope, then on the centroid this many times. A spot within the window's
+# truncation bias (~0.07 px at the defaults) of a half-pixel boundary has two stable windows, and the start picks one:
+# 'cells' started on the lenslet centre plus f s and re-centred once, the reference on the reference spot plus f times
+# the slope at the centre: 23 of the default design's 1709 lenslets at its plan pose took other windows in the two,
+# ~70 urad each (Z2 1.5 sigma); with this rule in both and the lenslet's mean slope in the reference, 1 (Z2 0.8)
+TRACKING_ITERATIONS = 3
 _XT_CHUNK = 32  # lenslets per kernel pass: bounds its memory (a whole co-designed pose: 0.41 GB peak; >23 GB unchunked)
 # K_xy's series exp(i a t_x t_y) = sum_r (i a t_x t_y)^r / r!: its terms kept down to this bound. On the co-designed
 # design's lenslets (a up to 4.2: R = 8) the shifts are within 3e-4 nm of those at 1e-9 (R = 12), at 0.63x the cost
@@ -195,7 +202,7 @@ def _xy_ranks(a_abs: np.ndarray) -> np.ndarray:
 
 def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_log_i: np.ndarray, sensor: Sensor,
                     wavelength_nm: float, iterations: int = 1, sub: int = 2, windows: np.ndarray | None = None,
-                    return_windows: bool = False):
+                    return_windows: bool = False, start: np.ndarray | None = None):
     """Centroid minus spot position (..., n, 2) mm of a pixel window that sees the own lenslet's and
     its neighbours' coherent Fraunhofer spots.
 
@@ -226,7 +233,8 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     windows: (..., n, 2) first pixels of frozen windows (none placed, none re-centred; e.g. those a fit
     linearised at: whole-pixel placement makes the shift jump where a spot crosses a half pixel, ~3 whitened
     units of a pose's Zernike residual, once per ~25 sigma of a pose's rotation on the paper polynomial lens);
-    return_windows: also return the windows used (same shape).
+    return_windows: also return the windows used (same shape); start: (..., n, 2) where the first windows go
+    (default the spots; the tracking rule's, ``TRACKING_ITERATIONS``: the reference spot plus f times the slope).
     """
     lead = np.broadcast_shapes(spot.shape[:-1], K.shape[:-2], grad_log_i.shape[:-1])
     dt = np.result_type(spot, K, grad_log_i)
@@ -236,6 +244,7 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
     out = np.empty(sp.shape, dtype=dt)
     st_all = np.empty(sp.shape)
     frozen = None if windows is None else np.broadcast_to(windows, lead + (2,)).reshape(-1, 2)
+    first = None if start is None else np.broadcast_to(np.real(start), lead + (2,)).reshape(-1, 2)
     # the separable form where the block's cross term converges within _SEP_MAX_RANK terms (it needs only K and
     # grad ln I), the full block elsewhere
     ranks = _block_ranks(np.abs(np.real(_cross_term(Kf, sensor, wavelength_nm))))
@@ -248,7 +257,8 @@ def crosstalk_shift(spot: np.ndarray, centres: np.ndarray, K: np.ndarray, grad_l
             block = ({"K": Kf[c], "g": gf[c]} if centroid is _separable_centroid
                      else _local_block(Kf[c], gf[c], sensor, wavelength_nm))
             out[c], st_all[c] = _tracked_window_shift(sp[c], block, sensor, wavelength_nm, iterations, sub, centroid,
-                                                      None if frozen is None else frozen[c])
+                                                      None if frozen is None else frozen[c],
+                                                      None if first is None else first[c])
     out = out.reshape(lead + (2,))
     return (out, st_all.reshape(lead + (2,))) if return_windows else out
 
@@ -615,8 +625,10 @@ def crosstalk_slopes(s: np.ndarray, sq: np.ndarray, wi: np.ndarray, offsets: np.
     K, g = local_field(sq, wi, offsets, weights, sensor.pitch_mm)
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     spot = centres + f * s
-    d, st = crosstalk_shift(spot, centres, K, g, sensor, wavelength_nm, windows=windows, return_windows=True)
-    out = s * (1.0 + p * p / (6.0 * f * f)) + (d - reference_shift(sensor, wavelength_nm, centres)) / f
+    ref = reference_shift(sensor, wavelength_nm, centres)
+    d, st = crosstalk_shift(spot, centres, K, g, sensor, wavelength_nm, iterations=TRACKING_ITERATIONS,
+                            windows=windows, return_windows=True, start=spot + ref)
+    out = s * (1.0 + p * p / (6.0 * f * f)) + (d - ref) / f
     return (out, st) if return_windows else out
 
 
@@ -646,6 +658,8 @@ def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray,
     dK, dg = np.moveaxis(Kc.imag / h, 0, -1), np.moveaxis(gc.imag / h, 0, -1)
     d_local = np.concatenate([f * ds, dK.reshape(dK.shape[:-3] + (4,) + dK.shape[-1:]), dg], axis=-2)
     spot = centres + f * s
+    if windows is None:  # the windows the slopes' own tracking ends in (``crosstalk_slopes``)
+        windows = crosstalk_slopes(s, sq, wi, offsets, weights, centres, sensor, wavelength_nm, return_windows=True)[1]
     jac = np.empty(s.shape + (LOCAL_INPUTS,))  # (..., n, 2, 8): d shift / d local input
     for j in range(LOCAL_INPUTS):
         e = np.zeros(LOCAL_INPUTS)
@@ -663,13 +677,6 @@ def crosstalk_slope_derivatives(sq: np.ndarray, wi: np.ndarray, dsq: np.ndarray,
 # neighbours' ~1/distance sinc tails); at ring 5, 2 / 4 / 8 samples per pixel: 1.7-4.2 / 0.55-0.75 / 0.48-0.73 urad
 CELL_RING = 4
 CELL_SUB = 4
-# window re-centrings of the 'tracking' rule (ASSUMPTION, the device's algorithm is not published): the first window
-# on the reference spot plus f times the slope, then on the centroid this many times. A spot within the window's
-# truncation bias (~0.07 px at the defaults) of a half-pixel boundary has two stable windows, and the start picks one:
-# 'cells' started on the lenslet centre plus f s and re-centred once, the reference on the reference spot plus f times
-# the slope at the centre: 23 of the default design's 1709 lenslets at its plan pose took other windows in the two,
-# ~70 urad each (Z2 1.5 sigma); with this rule in both and the lenslet's mean slope in the reference, 1 (Z2 0.8)
-TRACKING_ITERATIONS = 3
 
 
 def _index_of(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -728,14 +735,70 @@ CELL_DELTA_MAX = 0.25  # the amplitude curvature kept across half a cell (a Gaus
 def axis_neighbours(lit_centres: np.ndarray, pitch: float) -> np.ndarray:
     """(L, 2, 2) index of each lit lenslet's lit neighbour at -1 and +1 pitch along x (axis 0) and y (axis 1); -1:
     none."""
-    ij = np.rint(np.asarray(lit_centres) / pitch).astype(np.int64)
-    span = 2 * int(np.abs(ij).max(initial=0)) + 3  # keys of the grid points one pitch beyond stay distinct
+    # in half pitches: an even lenslet count puts the centres on half-integer multiples of the pitch
+    ij = np.rint(2.0 * np.asarray(lit_centres) / pitch).astype(np.int64)
+    span = 2 * int(np.abs(ij).max(initial=0)) + 5  # keys of the grid points one pitch beyond stay distinct
 
     def key(a):
         return (a[..., 0] + span) * (2 * span) + (a[..., 1] + span)
 
-    steps = np.array([[[-1, 0], [1, 0]], [[0, -1], [0, 1]]])  # (axis, side, xy)
+    steps = 2 * np.array([[[-1, 0], [1, 0]], [[0, -1], [0, 1]]])  # (axis, side, xy)
     return _index_of(key(ij), key(ij[:, None, None, :] + steps[None]))
+
+
+def _hermite_step(pe, s0, sb, K0, Kb):
+    """W_b - W_0 (...) between two lenslet centres pe (..., 2) apart from their slopes s (..., 2) and slope gradients
+    K (..., 2, 2): the two-point Hermite rule along the segment (exact for a cubic W)."""
+    Ks0, Ksb = 0.5 * (K0 + np.swapaxes(K0, -1, -2)), 0.5 * (Kb + np.swapaxes(Kb, -1, -2))
+    return 0.5 * np.einsum("...i,...i->...", pe, s0 + sb) + np.einsum("...i,...ij,...j->...", pe, Ks0 - Ksb, pe) / 12.0
+
+
+def cell_pistons(tilt: np.ndarray, K: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float):
+    """(W (..., L), component (..., L) int) the wavefront at every lit lenslet's centre, up to one constant per
+    connected lit region (``component``, -1 for a dark lenslet), the least-squares integral of the one-pitch Hermite
+    steps (``_hermite_step``) between lit axis neighbours. One Hermite step across a whole block (up to 4 rings, 6
+    pitches on the diagonal) misses a freeform's fifth-order terms by (6 p)^5 W^(5) / 720; chained one-pitch steps
+    by ~p^5. Linear in the slopes, so a complex step passes through (real and imaginary parts solved alike)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.linalg import splu
+
+    lead, L = lit.shape[:-1], lit.shape[-1]
+    P = int(np.prod(lead, dtype=int))
+    t, KK, lt = tilt.reshape(P, L, 2), K.reshape(P, L, 2, 2), lit.reshape(P, L)
+    rows, cols, rhs = [], [], []
+    for ax in range(2):
+        hi = axis_nb[:, ax, 1]
+        a = np.nonzero(hi >= 0)[0]
+        b = hi[a]
+        pe = np.zeros(2)
+        pe[ax] = pitch
+        ok = lt[:, a] & lt[:, b]  # (P, E)
+        lp, e = np.nonzero(ok)
+        rows.append(lp * L + a[e])
+        cols.append(lp * L + b[e])
+        rhs.append(_hermite_step(pe, t[lp, a[e]], t[lp, b[e]], KK[lp, a[e]], KK[lp, b[e]]))
+    i, j, d = np.concatenate(rows), np.concatenate(cols), np.concatenate(rhs)  # W_j - W_i = d
+    N = P * L
+    adj = coo_matrix((np.ones(len(i)), (i, j)), shape=(N, N)).tocsr()
+    _, comp = connected_components(adj, directed=False)
+    comp = np.where(lt.reshape(-1), comp, -1)
+    # normal equations: the graph Laplacian, one node of each region pinned (its constant is free)
+    first = np.unique(comp[comp >= 0], return_index=True)[1] if N else np.zeros(0, int)
+    pin = np.nonzero(comp >= 0)[0][first]
+    deg = np.bincount(i, minlength=N) + np.bincount(j, minlength=N) + (comp < 0)
+    diag = deg.astype(float)
+    diag[pin] += 1.0
+    lap = coo_matrix((np.r_[diag, -np.ones(2 * len(i))], (np.r_[np.arange(N), i, j], np.r_[np.arange(N), j, i])),
+                     shape=(N, N)).tocsc()
+    div = np.zeros(N, dtype=d.dtype)
+    np.add.at(div, j, d)
+    np.add.at(div, i, -d)
+    lu = splu(lap)
+    W = lu.solve(np.real(div).astype(float))
+    if np.iscomplexobj(div):
+        W = W + 1j * lu.solve(np.imag(div).astype(float))
+    return W.reshape(lead + (L,)), comp.reshape(lead + (L,))
 
 
 def ln_i_curvature(g: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float) -> np.ndarray:
@@ -785,9 +848,10 @@ def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centr
     pe = lit_centres[nbc] - lit_centres[i][:, None, :]  # (m, B, 2)
     s0, sb = own("tilt")[:, None, :], other("tilt")
     K0, Kb = own("K"), other("K")
-    Ks0, Ksb = 0.5 * (K0 + np.swapaxes(K0, -1, -2)), 0.5 * (Kb + np.swapaxes(Kb, -1, -2))
-    d_w = (0.5 * np.einsum("mbi,mbi->mb", pe, s0 + sb)
-           + np.einsum("mbi,mbij,mbj->mb", pe, Ks0[:, None] - Ksb, pe) / 12.0)  # W_b - W_own at the centres
+    d_w = _hermite_step(pe, s0, sb, K0[:, None], Kb)  # W_b - W_own at the centres
+    if "W" in cells:  # the integrated wavefront where both lie in one lit region (``cell_pistons``)
+        same = (other("comp") == own("comp")[:, None]) & (own("comp")[:, None] >= 0)
+        d_w = np.where(same, other("W") - own("W")[:, None], d_w)
     phase = k * (d_w - np.einsum("mbi,mbi->mb", pe, np.broadcast_to(s0, pe.shape))
                  + 0.5 * (pe**2).sum(axis=-1) / f)
     amp = np.where(have & other("lit"), np.exp(other("ln_a") - own("ln_a")[:, None]), 0.0)
@@ -866,10 +930,12 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     n = neighbours.shape[0]
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     tilt, K, g, ln_a, lit = cell_fields(sq, wi, offsets, weights, p)
-    h = ln_i_curvature(g, lit, axis_neighbours(lit_centres, p), p)
+    axis_nb = axis_neighbours(lit_centres, p)
+    h = ln_i_curvature(g, lit, axis_nb, p)
     # ln_a is half the rule's mean of ln I, the cell's mean: the centre's is lower by its curvature's share
     ln_a = ln_a - 0.25 * p * p * np.einsum("k,...k->...", weights @ offsets**2, h)
-    cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit}
+    W, comp = cell_pistons(tilt, K, lit, axis_nb, p)
+    cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit, "W": W, "comp": comp}
     s = tilt[..., :n, :]
     spot = lit_centres[:n] + f * s
     ref = cell_reference_shift(sensor, wavelength_nm, lit_centres, neighbours)
