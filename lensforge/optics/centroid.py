@@ -758,7 +758,8 @@ def cell_pistons(tilt: np.ndarray, K: np.ndarray, lit: np.ndarray, axis_nb: np.n
     connected lit region (``component``, -1 for a dark lenslet), the least-squares integral of the one-pitch Hermite
     steps (``_hermite_step``) between lit axis neighbours. One Hermite step across a whole block (up to 4 rings, 6
     pitches on the diagonal) misses a freeform's fifth-order terms by (6 p)^5 W^(5) / 720; chained one-pitch steps
-    by ~p^5. Linear in the slopes, so a complex step passes through (real and imaginary parts solved alike)."""
+    by ~p^5. Linear in the slopes, so a complex step passes through (real and imaginary parts solved alike). One
+    sparse factorisation per distinct lit pattern (a pose's complex-step directions share theirs)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.sparse.linalg import splu
@@ -766,38 +767,39 @@ def cell_pistons(tilt: np.ndarray, K: np.ndarray, lit: np.ndarray, axis_nb: np.n
     lead, L = lit.shape[:-1], lit.shape[-1]
     P = int(np.prod(lead, dtype=int))
     t, KK, lt = tilt.reshape(P, L, 2), K.reshape(P, L, 2, 2), lit.reshape(P, L)
-    rows, cols, rhs = [], [], []
+    W = np.zeros((P, L), dtype=np.result_type(tilt, K))
+    comp = np.full((P, L), -1)
+    edges = []  # (a, b, axis) with b the +1 pitch neighbour of a along the axis
     for ax in range(2):
         hi = axis_nb[:, ax, 1]
         a = np.nonzero(hi >= 0)[0]
-        b = hi[a]
-        pe = np.zeros(2)
-        pe[ax] = pitch
-        ok = lt[:, a] & lt[:, b]  # (P, E)
-        lp, e = np.nonzero(ok)
-        rows.append(lp * L + a[e])
-        cols.append(lp * L + b[e])
-        rhs.append(_hermite_step(pe, t[lp, a[e]], t[lp, b[e]], KK[lp, a[e]], KK[lp, b[e]]))
-    i, j, d = np.concatenate(rows), np.concatenate(cols), np.concatenate(rhs)  # W_j - W_i = d
-    N = P * L
-    adj = coo_matrix((np.ones(len(i)), (i, j)), shape=(N, N)).tocsr()
-    _, comp = connected_components(adj, directed=False)
-    comp = np.where(lt.reshape(-1), comp, -1)
-    # normal equations: the graph Laplacian, one node of each region pinned (its constant is free)
-    first = np.unique(comp[comp >= 0], return_index=True)[1] if N else np.zeros(0, int)
-    pin = np.nonzero(comp >= 0)[0][first]
-    deg = np.bincount(i, minlength=N) + np.bincount(j, minlength=N) + (comp < 0)
-    diag = deg.astype(float)
-    diag[pin] += 1.0
-    lap = coo_matrix((np.r_[diag, -np.ones(2 * len(i))], (np.r_[np.arange(N), i, j], np.r_[np.arange(N), j, i])),
-                     shape=(N, N)).tocsc()
-    div = np.zeros(N, dtype=d.dtype)
-    np.add.at(div, j, d)
-    np.add.at(div, i, -d)
-    lu = splu(lap)
-    W = lu.solve(np.real(div).astype(float))
-    if np.iscomplexobj(div):
-        W = W + 1j * lu.solve(np.imag(div).astype(float))
+        edges.append(np.stack([a, hi[a], np.full(len(a), ax)], axis=1))
+    edges = np.concatenate(edges)
+    patterns, which = np.unique(lt, axis=0, return_inverse=True)
+    for u, pattern in enumerate(patterns):
+        rows = np.nonzero(which.reshape(-1) == u)[0]
+        e = edges[pattern[edges[:, 0]] & pattern[edges[:, 1]]]
+        i, j, ax = e[:, 0], e[:, 1], e[:, 2]
+        pe = np.zeros((len(e), 2))
+        pe[np.arange(len(e)), ax] = pitch
+        d = _hermite_step(pe, t[rows][:, i], t[rows][:, j], KK[rows][:, i], KK[rows][:, j])  # (m, E): W_j - W_i
+        _, c = connected_components(coo_matrix((np.ones(len(e)), (i, j)), shape=(L, L)), directed=False)
+        c = np.where(pattern, c, -1)
+        # normal equations: the graph Laplacian, one node of each region pinned (its constant is free)
+        pin = np.nonzero(c >= 0)[0][np.unique(c[c >= 0], return_index=True)[1]]
+        diag = (np.bincount(i, minlength=L) + np.bincount(j, minlength=L) + ~pattern).astype(float)
+        diag[pin] += 1.0
+        lap = coo_matrix((np.r_[diag, -np.ones(2 * len(e))], (np.r_[np.arange(L), i, j], np.r_[np.arange(L), j, i])),
+                         shape=(L, L)).tocsc()
+        inc = coo_matrix((np.r_[np.ones(len(e)), -np.ones(len(e))], (np.r_[j, i], np.tile(np.arange(len(e)), 2))),
+                         shape=(L, len(e))).tocsr()  # the steps' divergence
+        div = inc @ d.T  # (L, m)
+        lu = splu(lap)
+        sol = lu.solve(np.ascontiguousarray(np.real(div), dtype=float))
+        if np.iscomplexobj(div):
+            sol = sol + 1j * lu.solve(np.ascontiguousarray(np.imag(div), dtype=float))
+        W[rows] = sol.T
+        comp[rows] = c
     return W.reshape(lead + (L,)), comp.reshape(lead + (L,))
 
 
