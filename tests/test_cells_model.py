@@ -197,7 +197,11 @@ def test_cells_kernel_against_an_exact_wave(R, centre, alpha=0.0):
     # lenslets (alpha: a plane wave's direction sine added); the model gets the cells' tan slopes and curvature.
     # Measured, 3 x 3 block: model - exact 0.054 and 0.36 urad along the tilt, < 0.6 % of the non-paraxial shift (the
     # Fresnel form's error, 66-70 urad) and < 7e-6 of the tilt (5 x 5 block, 15-pixel window: 0.32 and 0.48 urad;
-    # a plane wave at 52 mrad: 0.22): near the 1 sigma level of Z4 on the paper Zernike lens (issue 21)
+    # a plane wave at 52 mrad: 0.22): near the 1 sigma level of Z4 on the paper Zernike lens (issue 21). The error
+    # grows with the block (converging, 15 pixels: rings 1, 2, 3 +0.045, -0.32, -0.56 urad): the far neighbours'
+    # light. Pistons from the integrated direction sines plus the kernel's chief-ray terms took these to -0.13,
+    # -0.20, -0.34 and the diverging wave's 0.48 to 0.16, but moved the full-array reference's spheres the other
+    # way (Z4 +0.1 sigma), so they are not in the model
     sensor = Sensor(centroid_window_px=11)
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     pupil = p * np.round(np.array([centre]) / p)
