@@ -109,21 +109,28 @@ def test_cells_kernel_is_the_blocks_fresnel_integral():
 
 
 
+def _window_and_aperture_nodes(spot, sensor, sub, nodes):
+    """(window's first pixels st, its camera samples X, Y, the aperture's Gauss-Legendre nodes ux, uy (mm from the
+    lenslet centre) and weights ww) of the brute-force integrals."""
+    p = sensor.pitch_mm
+    st, xs = _window_samples(spot, sensor, sub)
+    X, Y = np.meshgrid(xs[0], xs[1], indexing="xy")
+    t, w = _gl(nodes)
+    ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
+    return st, X, Y, ux.ravel(), uy.ravel(), np.outer(w, w).ravel() * p * p
+
+
 def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120):
     """Window centroid of pupil lenslet i as ``_brute_force_window`` but each aperture point propagated to each
     camera sample by the Rayleigh-Sommerfeld kernel (f / r^2) exp(i k r), r = sqrt(f^2 + |rho|^2), relative to the
     Fresnel one: the factor exp(Lambda), Lambda = ln(f^2 / r^2) + i k (r - f - |rho|^2 / 2f), less the part the
     model's tan slopes already hold (Lambda's phase linearised about the lenslet's chief ray rho* = f s_b), node by
     node (not separable: no aperture moments, no expansion)."""
-    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    f = sensor.lenslet_focal_mm
     k = 2 * np.pi / (wl_nm * 1e-6)
     s = cells["tilt"]
     spot = centres[i] + f * s[i]
-    st, xs = _window_samples(spot, sensor, sub)
-    X, Y = np.meshgrid(xs[0], xs[1], indexing="xy")
-    t, w = _gl(nodes)
-    ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
-    ux, uy, ww = ux.ravel(), uy.ravel(), np.outer(w, w).ravel() * p * p
+    st, X, Y, ux, uy, ww = _window_and_aperture_nodes(spot, sensor, sub, nodes)
     U = np.zeros(X.size, complex)
     for b in neighbours[i]:
         if b < 0:
@@ -168,13 +175,9 @@ def _exact_wave_window(S, pupil_i, centres, neighbours, spot, sensor, wl_nm, sub
     path, its gradient the direction sines) through every ideal thin lenslet of its block, each point propagated to
     each camera sample by the whole Rayleigh-Sommerfeld kernel (f / r^2) exp(i k r) (fresnel: its paraxial form):
     nothing linearised, no slopes, no tan mapping -- the model's inputs are not used."""
-    f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
+    f = sensor.lenslet_focal_mm
     k = 2 * np.pi / (wl_nm * 1e-6)
-    st, xs = _window_samples(spot, sensor, sub)
-    X, Y = np.meshgrid(xs[0], xs[1], indexing="xy")
-    t, w = _gl(nodes)
-    ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
-    ux, uy, ww = ux.ravel(), uy.ravel(), np.outer(w, w).ravel() * p * p
+    st, X, Y, ux, uy, ww = _window_and_aperture_nodes(spot, sensor, sub, nodes)
     U = np.zeros(X.size, complex)
     for b in neighbours[pupil_i]:
         if b < 0:
