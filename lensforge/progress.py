@@ -35,7 +35,9 @@ class Bar:
 
 @contextmanager
 def progress_bar(total: int | None, description: str = "", enabled: bool = True):
-    """Yield a :class:`Bar` counting to ``total`` (None: not known yet); it disappears when the block ends."""
+    """Yield a :class:`Bar` counting to ``total`` (None: not known yet); it disappears when the block ends. Drawn
+    only on a terminal: into a pipe or a file the transient bar left nothing but an empty line (before an error's
+    one line, too)."""
     if not enabled:
         yield Bar()
         return
@@ -43,6 +45,10 @@ def progress_bar(total: int | None, description: str = "", enabled: bool = True)
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
 
+    console = Console(stderr=True)
+    if not console.is_terminal:
+        yield Bar()
+        return
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), console=Console(stderr=True), transient=True) as p:
+                  TimeRemainingColumn(), console=console, transient=True) as p:
         yield Bar(p, p.add_task(description, total=total))

@@ -150,6 +150,17 @@ def test_disabled_progress_bar_prints_nothing(capsys):
     assert capsys.readouterr() == ("", "")
 
 
+def test_progress_bar_into_a_pipe_prints_nothing():
+    # stderr not a terminal (a pipe, a log file): no bar, and no empty line left where it was
+    import subprocess
+    import sys
+
+    prog = ("from lensforge.progress import progress_bar\n"
+            "with progress_bar(3, 'x') as bar:\n    bar.advance()\n    bar.describe('y')\n")
+    out = subprocess.run([sys.executable, "-c", prog], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout == "" and out.stderr == "", out
+
+
 def test_design_defaults_are_the_good_recipe():
     import inspect
 
