@@ -829,8 +829,9 @@ def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centr
                 wavelength_nm: float, exact: bool = True) -> dict:
     """The block of m window rows (``rows`` (m, 2): leading index, pupil lenslet) from every lit lenslet's own field
     (``cells``: tilt, K, g, h, ln_a, lit, each with a flattened leading axis): per neighbour b its spot relative to the
-    own spot, complex amplitude (the amplitude ratio, the piston between the two centres by the two-point Hermite rule
-    on their slopes and curvatures, the lenslets' focusing phase), curvature alpha (m, B, 2), cross term a_xy (m, B),
+    own spot, complex amplitude (the amplitude ratio, the piston between the two centres from ``cells`` W, the
+    integrated wavefront of ``cell_pistons``, else by the two-point Hermite rule on their slopes and curvatures, the
+    lenslets' focusing phase), curvature alpha (m, B, 2), cross term a_xy (m, B),
     amplitude gradient gam (m, B, 2) and curvature dlt (m, B, 2) across the sub-aperture (from ln I's, ``cells`` g
     and h) and centre offset pe (m, B, 2)."""
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
