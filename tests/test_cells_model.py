@@ -329,7 +329,7 @@ def test_cell_pistons_integrate_a_freeform_wavefront(n_side):
         m = comp == r
         err.append(np.abs((Wc[m] - Wc[m].mean()) - (W[m] - W[m].mean())).max())
     i, b = np.argmin(np.hypot(x - 1.2, y - 1.2)), np.argmin(np.hypot(x - 0.6, y - 0.6))  # 4 pitches apart on each axis
-    far = abs(centroid._hermite_step(c[b] - c[i], s[i], s[b], K[i], K[b]) - (W[b] - W[i]))
+    far = abs(centroid.hermite_step(c[b] - c[i], s[i], s[b], K[i], K[b]) - (W[b] - W[i]))
     # the one-pitch rule misses by p^5 W^(5) / 720 per step; summed over the grid (4.5e-7 of W's range), still far
     # below one block-wide step (the pistons' old rule)
     assert max(err) < 2e-6 * np.ptp(W) and max(err) < far / 50, (err, far)

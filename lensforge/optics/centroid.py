@@ -746,7 +746,7 @@ def axis_neighbours(lit_centres: np.ndarray, pitch: float) -> np.ndarray:
     return _index_of(key(ij), key(ij[:, None, None, :] + steps[None]))
 
 
-def _hermite_step(pe, s0, sb, K0, Kb):
+def hermite_step(pe, s0, sb, K0, Kb):
     """W_b - W_0 (...) between two lenslet centres pe (..., 2) apart from their slopes s (..., 2) and slope gradients
     K (..., 2, 2): the two-point Hermite rule along the segment (exact for a cubic W)."""
     Ks0, Ksb = 0.5 * (K0 + np.swapaxes(K0, -1, -2)), 0.5 * (Kb + np.swapaxes(Kb, -1, -2))
@@ -756,7 +756,7 @@ def _hermite_step(pe, s0, sb, K0, Kb):
 def cell_pistons(tilt: np.ndarray, K: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float):
     """(W (..., L), component (..., L) int) the wavefront at every lit lenslet's centre, up to one constant per
     connected lit region (``component``, -1 for a dark lenslet), the least-squares integral of the one-pitch Hermite
-    steps (``_hermite_step``) between lit axis neighbours. One Hermite step across a whole block (up to 4 rings, 6
+    steps (``hermite_step``) between lit axis neighbours. One Hermite step across a whole block (up to 4 rings, 6
     pitches on the diagonal) misses a freeform's fifth-order terms by (6 p)^5 W^(5) / 720; chained one-pitch steps
     by ~p^5. Linear in the slopes, so a complex step passes through (real and imaginary parts solved alike). One
     sparse factorisation per distinct lit pattern (a pose's complex-step directions share theirs)."""
@@ -782,7 +782,7 @@ def cell_pistons(tilt: np.ndarray, K: np.ndarray, lit: np.ndarray, axis_nb: np.n
         i, j, ax = e[:, 0], e[:, 1], e[:, 2]
         pe = np.zeros((len(e), 2))
         pe[np.arange(len(e)), ax] = pitch
-        d = _hermite_step(pe, t[rows][:, i], t[rows][:, j], KK[rows][:, i], KK[rows][:, j])  # (m, E): W_j - W_i
+        d = hermite_step(pe, t[rows][:, i], t[rows][:, j], KK[rows][:, i], KK[rows][:, j])  # (m, E): W_j - W_i
         _, c = connected_components(coo_matrix((np.ones(len(e)), (i, j)), shape=(L, L)), directed=False)
         c = np.where(pattern, c, -1)
         # normal equations: the graph Laplacian, one node of each region pinned (its constant is free)
@@ -851,7 +851,7 @@ def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centr
     pe = lit_centres[nbc] - lit_centres[i][:, None, :]  # (m, B, 2)
     s0, sb = own("tilt")[:, None, :], other("tilt")
     K0, Kb = own("K"), other("K")
-    d_w = _hermite_step(pe, s0, sb, K0[:, None], Kb)  # W_b - W_own at the centres
+    d_w = hermite_step(pe, s0, sb, K0[:, None], Kb)  # W_b - W_own at the centres
     if "W" in cells:  # the integrated wavefront where both lie in one lit region (``cell_pistons``)
         same = (other("comp") == own("comp")[:, None]) & (own("comp")[:, None] >= 0)
         d_w = np.where(same, other("W") - own("W")[:, None], d_w)
