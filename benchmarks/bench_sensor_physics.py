@@ -10,6 +10,8 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
      ... --pose-bias COMPARE.json [--models none,cells]: the poses estimated from the physical Zernikes (Table 1)
      ... --cost: S(p) with and without the cross-talk model, one physical pose
+     ... --fit-cost [--no-whole]: one pose estimate on 'cells', the frozen cross-talk correction against the
+         trust region on the whole model (time, difference in sigma)
      ... --spheres [--design D] [--radii 1e9,100,-100] [--beam-offset 0,3]: analytic spherical waves (R = +-20
          ... 100 mm, uniform and Gaussian beam, optionally off-centre) through the physical reference against the
          fast models, no lens (what the cross-talk kernel misses, isolated)
@@ -230,6 +232,34 @@ def cost(lens_name: str = "zernike", repeat: int = 3) -> dict:
     return out
 
 
+def fit_cost(lens_name: str = "polynomial", whole: bool = True, seed: int = 0) -> dict:
+    """Wall time of one pose estimate on the 'cells' model (a noisy measurement at the plan's most extreme pose,
+    started 0.3 mm / 1 deg off): the frozen cross-talk correction (``estimate_poses_batch``'s default) and, with
+    whole, the trust region on the whole model; their estimates' difference in sigma."""
+    from lensforge.calibration.pose_estimation import estimate_poses_batch
+
+    bench = lf.Bench.default().replace(sensor={"crosstalk": "cells"})
+    model = ForwardModel(bench, lf.paper_lens(lens_name))
+    x_true = extreme_poses(model.lens, lf.Bench.default(), 1)[1:]
+    z = model.evaluate(x_true, check_range=False).z
+    z = z + np.random.default_rng(seed).standard_normal(z.shape) @ np.linalg.cholesky(model.noise_cov).T
+    x0 = x_true + np.array([0.3, -0.2, 0.2, 0.01, -0.01, 0.02])
+    out = {}
+    for frozen in (True, False) if whole else (True,):
+        t0 = time.perf_counter()
+        est = estimate_poses_batch(model, z, x0, frozen_crosstalk=frozen)
+        label = "frozen" if frozen else "whole"
+        out[label] = {"seconds": time.perf_counter() - t0, "pose": est.poses[0].tolist(), "chi2": float(est.chi2[0]),
+                      "status": str(est.status[0]), "std": np.sqrt(np.diag(est.cov[0])).tolist()}
+        print(f"pose estimate on 'cells', {lens_name} lens, {label}: {out[label]['seconds']:.0f} s, chi2 "
+              f"{est.chi2[0]:.3f}, {est.status[0]}", flush=True)
+    if whole:
+        d = (np.array(out["frozen"]["pose"]) - out["whole"]["pose"]) / np.array(out["whole"]["std"])
+        out["difference_sigma"] = d.tolist()
+        print(f"frozen - whole: {np.round(d, 4).tolist()} sigma", flush=True)
+    return out
+
+
 def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin: int = 5,
             design: str | None = None, beam_offset_mm=(0.0, 0.0)) -> dict:
     """Physical reference minus fast model (sigma per mode) for spherical waves converging to R mm after
@@ -321,6 +351,9 @@ def main(argv=None):
     ap.add_argument("--pose-bias", default=None, help="a compare JSON: estimate its poses from the physical "
                     "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
+    ap.add_argument("--fit-cost", action="store_true", help="time one pose estimate on 'cells': frozen cross-talk "
+                    "correction against the whole model (--no-whole: the frozen one only)")
+    ap.add_argument("--no-whole", action="store_true", help="--fit-cost: skip the whole model's (slow) fit")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     ap.add_argument("--radii", type=_floats(), default=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), help="--spheres: the waves' radii, mm (a huge one: "
                     "a plane wave)")
@@ -338,6 +371,11 @@ def main(argv=None):
         return
     if a.cost:
         cost()
+        return
+    if a.fit_cost:
+        out = fit_cost(whole=not a.no_whole, seed=a.seed)
+        if a.json:
+            write_atomic(a.json, json.dumps(out))
         return
     if a.pose_bias:
         out = pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")), a.design)

@@ -18,8 +18,12 @@ out of the bench's range on the first Gauss-Newton step; Marquardt's damping (la
 a weak direction least (on 30 noisy paper-Zernike estimates it converged on 7, the
 trust region on 26; ``benchmarks/bench_pose_convergence.py``). The Jacobian is
 ``ForwardModel.jacobians`` (exact: the rays' derivatives carried through the
-trace), warm-started from the aimed rays; on a cross-talk bench the iterations take the
-own centroid's (exact=False) and a pose that stops on them goes on with exact ones. The reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution: for the
+trace), warm-started from the aimed rays. On a cross-talk bench (``sensor.crosstalk``) the fit
+iterates on the own-centroid model with the cross-talk's correction frozen and refreshed
+(``_frozen_crosstalk_fit``), then finishes with Gauss-Newton steps on the exact Jacobian; with
+``frozen_crosstalk=False`` the trust region runs on the whole model, its iterations on the own
+centroid's Jacobians (exact=False) and a pose that stops on them goes on with exact ones. The
+reported covariance is the Gauss-Newton one, (J^T R^-1 J)^-1 at the solution (the exact J): for the
 noise levels of the bench the problem is locally linear, so this is the Cramer-Rao
 bound evaluated at the estimate, and chi2 = r^T r follows a chi-square law with
 m - 6 degrees of freedom.
@@ -144,7 +148,7 @@ class _Start:
 
 def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLike, *, max_iter: int = 40,
                          xtol: float = 1e-10, ftol: float = 1e-10,
-                         max_step: float | None = None, trust_radius: float = 1.0,
+                         max_step: float | None = None, trust_radius: float = 1.0, frozen_crosstalk: bool = True,
                          _start: _Start | None = None) -> BatchPoseEstimate:
     """Whitened least-squares pose estimates for P measurements at once (trust-region LM, batched).
 
@@ -176,6 +180,10 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
         Largest trust radius, scaled units (default unbounded).
     trust_radius : float
         Initial trust radius, scaled units.
+    frozen_crosstalk : bool
+        On a cross-talk bench (``model.crosstalk``), iterate on the own-centroid model with the cross-talk's
+        correction frozen (``_frozen_crosstalk_fit``): the same estimate for a few evaluations of the cross-talk
+        model instead of two per iteration. False: the trust region on the whole model throughout.
 
     Returns
     -------
@@ -185,6 +193,143 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
     """
     Z = np.atleast_2d(np.asarray(z_measured, dtype=float))
     x = np.array(np.atleast_2d(x0), dtype=float)
+    kw = dict(max_iter=max_iter, xtol=xtol, ftol=ftol, max_step=max_step, trust_radius=trust_radius)
+    if model.crosstalk and frozen_crosstalk:
+        return _frozen_crosstalk_fit(model, Z, x, kw, _start)
+    return _batch_lm(model, Z, x, _start=_start, **kw)
+
+
+# the frozen cross-talk correction's rounds at most, and its change (whitened: noise sigma, any mode) that ends them
+FROZEN_ROUNDS = 6
+FROZEN_TOL = 0.1
+# then Gauss-Newton steps on the exact Jacobian at most, until a step is below this many sigma in every DOF
+POLISH_STEPS = 4
+POLISH_TOL = 1e-4
+
+
+def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw: dict,
+                          start: _Start | None) -> BatchPoseEstimate:
+    """``estimate_poses_batch`` on a cross-talk bench, by deferred correction. The cross-talk model h (tens of
+    seconds a pose for 'cells') differs from the own-centroid model h_own (milliseconds) by a correction
+    c(x) = h(x) - h_own(x) that moves slowly with the pose. Each round fits h_own(x) + c to z with c frozen at
+    the last round's poses (``_batch_lm`` on ``model.own_centroid_model`` and z - c), then evaluates h once at the
+    new poses; the rounds end when c moved by less than ``FROZEN_TOL`` sigma. At that fixed point
+    J_own^T R^-1 (z - h(x)) = 0; one Gauss-Newton step on h's exact Jacobian J then reaches the whole model's
+    minimum, J^T R^-1 (z - h(x)) = 0 (to second order in a step of a few percent of sigma), with its covariance
+    (J^T R^-1 J)^-1. About 3 evaluations of h and one exact Jacobian a pose, against two evaluations of h per
+    iteration. A pose whose rounds do not settle (a centroid window jumping a pixel back and forth), whose
+    own-model fit fails, or whose polished step is rejected is fitted on h throughout (``_batch_lm``) from x0."""
+    own = model.own_centroid_model
+    L, rtol = model.whitener, model.bench.rank_rtol
+    D = np.asarray(model.bench.pose_scales, dtype=float)
+    P, m = Z.shape
+    x = x0.copy()
+    full = model.evaluate(x, check_range=False)
+    zf, uvf, lit0 = full.z.copy(), full.uv.copy(), full.valid.copy()
+    n_evals, n_iter, iterations = P, np.zeros(P, int), 0
+    c = np.full((P, m), np.nan)
+    status = np.where(lit0, "max_iter", "unlit").astype(object)
+    observable = np.ones((P, 6), bool)
+    settled = np.zeros(P, bool)
+    todo = lit0.copy()
+    for rnd in range(FROZEN_ROUNDS + 1):
+        idx = np.flatnonzero(todo)
+        if idx.size == 0:
+            break
+        base = own.evaluate(x[idx], check_range=False)
+        n_evals += idx.size
+        c_new = zf[idx] - base.z
+        if rnd:  # c at the poses fitted with the previous c
+            moved = np.abs(_whiten(L, c_new - c[idx])).max(axis=1)
+            settled[idx[moved < FROZEN_TOL]] = True
+        todo[idx[settled[idx] | ~base.valid]] = False
+        if rnd == FROZEN_ROUNDS:
+            break
+        keep = todo[idx]
+        c[idx[keep]] = c_new[keep]
+        idx = idx[keep]
+        if idx.size == 0:
+            break
+        inner = _batch_lm(own, Z[idx] - c[idx], x[idx], **kw)
+        n_evals += inner.n_evals
+        n_iter[idx] += inner.n_iter
+        iterations += inner.iterations
+        status[idx], observable[idx] = inner.status, inner.observable
+        ok = np.isin(inner.status, ("converged", "flat")) & np.isfinite(inner.chi2)
+        todo[idx[~ok]] = False
+        idx = idx[ok]
+        x[idx] = inner.poses[ok]
+        full = model.evaluate(x[idx], check_range=False)
+        n_evals += idx.size
+        zf[idx], uvf[idx] = full.z, full.uv
+        todo[idx[~full.valid]] = False
+    cov = np.full((P, 6, 6), np.nan)
+    cost = np.full(P, np.inf)
+    s = np.flatnonzero(settled)
+    polished = np.zeros(P, bool)
+    if s.size:  # Gauss-Newton steps on the whole model's exact Jacobian at the rounds' poses (a chord method: the
+        # steps are a few percent of sigma), which also gives the covariance
+        J, _, res = model.jacobians(x[s], uv0=uvf[s], exact=True)
+        n_evals += (JACOBIAN_EVALS + 1) * s.size
+        Jw = _whiten_jac(L, J) * D  # d r / d u, u = x / D
+        r = _whiten(L, res.z - Z[s])
+        cost[s] = np.where(res.valid, np.sum(r * r, axis=1), np.inf)
+        gain = np.zeros((s.size, 6, Z.shape[1]))  # u step = gain @ -r on the estimated directions
+        for k, p in enumerate(s):
+            if start is not None:
+                basis, null = start.basis, start.null
+            else:
+                ob = observability(Jw[k] / D, D, rtol)
+                basis, null = ob.basis, ~np.isfinite(ob.std)
+            Jb = Jw[k] @ basis
+            try:
+                cb = np.linalg.inv(Jb.T @ Jb)
+            except np.linalg.LinAlgError:
+                cb = np.linalg.pinv(Jb.T @ Jb)
+            gain[k] = basis @ cb @ Jb.T
+            cov[p] = _mark_unobservable((basis @ cb @ basis.T) * np.outer(D, D), null)
+        sig_u = np.sqrt(np.diagonal(cov[s], axis1=1, axis2=2)) / D
+        sig_u = np.where(np.isfinite(sig_u), sig_u, 1.0)
+        uv, live = res.uv, res.valid.copy()
+        for _ in range(POLISH_STEPS):
+            k = np.flatnonzero(live)
+            if k.size == 0:
+                break
+            du = np.einsum("kij,kj->ki", gain[k], -r[k])
+            xn = x[s[k]] + du * D
+            new = model.evaluate(xn, uv0=uv[k], check_range=False)
+            n_evals += k.size
+            rn = _whiten(L, new.z - Z[s[k]])
+            cn = np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
+            acc = cn <= cost[s[k]] * (1.0 + 1e-12)
+            a = k[acc]
+            x[s[a]], cost[s[a]], r[a], uv[a] = xn[acc], cn[acc], rn[acc], new.uv[acc]
+            size = np.max(np.abs(du) / sig_u[k], axis=1)
+            small = size < POLISH_TOL
+            # a rejected step below 1e-2 sigma: the point stands (h is flat there at its rounding or a window's
+            # whole-pixel jump; the trust region would stop there too)
+            polished[s[k[(acc & small) | (~acc & (size < 1e-2))]]] = True
+            live[k[~acc | small]] = False
+    rest = np.flatnonzero(lit0 & ~polished)
+    if rest.size:  # from where the rounds left it (x0 where the own model's fit failed)
+        moved = np.any(x[rest] != x0[rest])
+        b = _batch_lm(model, Z[rest], x[rest], _start=None if moved else start, **kw)
+        n_evals += b.n_evals
+        iterations += b.iterations
+        x[rest], cov[rest], cost[rest], status[rest] = b.poses, b.cov, b.chi2, b.status
+        observable[rest], n_iter[rest] = b.observable, n_iter[rest] + b.n_iter
+    lim = model.bench.pose_limits
+    in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
+                & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
+    stopped = np.isin(status, ("converged", "flat", "far"))
+    return BatchPoseEstimate(poses=x, cov=cov, chi2=cost, converged=stopped & np.isfinite(cost) & in_range,
+                             iterations=iterations, n_evals=n_evals, out_of_range=stopped & np.isfinite(cost) & ~in_range,
+                             observable=observable, status=status, n_iter=n_iter)
+
+
+def _batch_lm(model: ForwardModel, Z: np.ndarray, x: np.ndarray, *, max_iter: int, xtol: float, ftol: float,
+              max_step: float | None, trust_radius: float, _start: _Start | None = None) -> BatchPoseEstimate:
+    """``estimate_poses_batch``'s trust-region LM on ``model`` throughout (Z (P, m) and x (P, 6) its own copies)."""
     P = x.shape[0]
     bench = model.bench
     L = model.whitener
@@ -293,9 +438,9 @@ def estimate_poses_batch(model: ForwardModel, z_measured: ArrayLike, x0: ArrayLi
         stuck = a[~acc & (tiny | (delta[a] <= 1e-12 * (1.0 + u_norm)))]
         relin = np.concatenate([done, stuck])
         relin = relin[~exact[relin]]  # stopped on iteration Jacobians: on with exact ones
+        done, stuck = done[exact[done]], stuck[exact[stuck]]  # before the switch: the relinearised go on
         exact[relin], need_J[relin] = True, True
         delta[relin] = np.minimum(np.maximum(delta[relin], trust_radius), cap)  # a new linearisation's region
-        done, stuck = done[exact[done]], stuck[exact[stuck]]
         status[done] = "converged"
         active[done] = False
         status[stuck] = "flat"  # no descent direction left: a (possibly flat) minimum
