@@ -218,7 +218,8 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
     minimum, J^T R^-1 (z - h(x)) = 0 (to second order in a step of a few percent of sigma), with its covariance
     (J^T R^-1 J)^-1. About 3 evaluations of h and one exact Jacobian a pose, against two evaluations of h per
     iteration. A pose whose rounds do not settle (a centroid window jumping a pixel back and forth), whose
-    own-model fit fails, or whose polished step is rejected is fitted on h throughout (``_batch_lm``) from x0."""
+    own-model fit fails, or whose polishing step is rejected is fitted on h throughout (``_batch_lm``) from where
+    the rounds left it. ``observable``: the statistical rule on the own-centroid model at the last round's start."""
     own = model.own_centroid_model
     L, rtol = model.whitener, model.bench.rank_rtol
     D = np.asarray(model.bench.pose_scales, dtype=float)
