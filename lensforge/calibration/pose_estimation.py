@@ -209,17 +209,22 @@ POLISH_TOL = 1e-4
 
 def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw: dict,
                           start: _Start | None) -> BatchPoseEstimate:
-    """``estimate_poses_batch`` on a cross-talk bench, by deferred correction. The cross-talk model h (tens of
-    seconds a pose for 'cells') differs from the own-centroid model h_own (milliseconds) by a correction
-    c(x) = h(x) - h_own(x) that moves slowly with the pose. Each round fits h_own(x) + c to z with c frozen at
-    the last round's poses (``_batch_lm`` on ``model.own_centroid_model`` and z - c), then evaluates h once at the
-    new poses; the rounds end when c moved by less than ``FROZEN_TOL`` sigma. At that fixed point
-    J_own^T R^-1 (z - h(x)) = 0; one Gauss-Newton step on h's exact Jacobian J then reaches the whole model's
-    minimum, J^T R^-1 (z - h(x)) = 0 (to second order in a step of a few percent of sigma), with its covariance
-    (J^T R^-1 J)^-1. About 3 evaluations of h and one exact Jacobian a pose, against two evaluations of h per
-    iteration. A pose whose rounds do not settle (a centroid window jumping a pixel back and forth), whose
-    own-model fit fails, or whose polishing step is rejected is fitted on h throughout (``_batch_lm``) from where
-    the rounds left it. ``observable``: the statistical rule on the own-centroid model at the last round's start."""
+    """``estimate_poses_batch`` on a cross-talk bench, by deferred correction. The cross-talk model h (seconds a
+    pose for 'cells') differs from the own-centroid model h_own (milliseconds) by a correction
+    c(x) = h(x) - h_own(x) that moves slowly with the pose (its derivative ~13 % of h's on the paper polynomial
+    lens). Each round fits h_own(x) + c to z with c frozen at the last round's poses (``_batch_lm`` on
+    ``model.own_centroid_model`` and z - c), then evaluates h once at the new poses; the rounds end when c moved
+    by less than ``FROZEN_TOL`` sigma. At that fixed point J_own^T R^-1 (z - h(x)) = 0; Gauss-Newton steps on h's
+    exact Jacobian J there (a chord method: the steps are a few percent of sigma) reach the whole model's
+    minimum, J^T R^-1 (z - h(x)) = 0, and J gives the covariance (J^T R^-1 J)^-1. About 4 evaluations of h and
+    one exact Jacobian a pose, against two evaluations of h per iteration.
+
+    The centroid windows are frozen at the first fit's poses (``ForwardModel.evaluate``'s windows): whole-pixel
+    placement makes h jump where a spot crosses a half pixel, by up to ~1 sigma for one lenslet, while after the
+    first fit every spot is within microradians of its final place, far below a pixel. A pose whose rounds do
+    not settle, whose own-model fit fails, or whose polishing step is rejected is fitted on h throughout
+    (``_batch_lm``) from where the rounds left it. ``observable``: the statistical rule on the own-centroid model
+    at the last round's start."""
     own = model.own_centroid_model
     L, rtol = model.whitener, model.bench.rank_rtol
     D = np.asarray(model.bench.pose_scales, dtype=float)
@@ -227,6 +232,7 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
     x = x0.copy()
     full = model.evaluate(x, check_range=False)
     zf, uvf, lit0 = full.z.copy(), full.uv.copy(), full.valid.copy()
+    win = None  # the centroid windows, frozen from the first fit's poses on
     n_evals, n_iter, iterations = P, np.zeros(P, int), 0
     c = np.full((P, m), np.nan)
     status = np.where(lit0, "max_iter", "unlit").astype(object)
@@ -260,9 +266,12 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
         todo[idx[~ok]] = False
         idx = idx[ok]
         x[idx] = inner.poses[ok]
-        full = model.evaluate(x[idx], check_range=False)
+        full = model.evaluate(x[idx], check_range=False, windows=None if win is None else win[idx])
         n_evals += idx.size
         zf[idx], uvf[idx] = full.z, full.uv
+        if win is None and full.windows is not None:
+            win = np.zeros((P,) + full.windows.shape[1:])
+            win[idx] = full.windows
         todo[idx[~full.valid]] = False
     cov = np.full((P, 6, 6), np.nan)
     cost = np.full(P, np.inf)
@@ -270,7 +279,8 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
     polished = np.zeros(P, bool)
     if s.size:  # Gauss-Newton steps on the whole model's exact Jacobian at the rounds' poses (a chord method: the
         # steps are a few percent of sigma), which also gives the covariance
-        J, _, res = model.jacobians(x[s], uv0=uvf[s], exact=True)
+        ws = None if win is None else win[s]
+        J, _, res = model.jacobians(x[s], uv0=uvf[s], exact=True, windows=ws)
         n_evals += (JACOBIAN_EVALS + 1) * s.size
         Jw = _whiten_jac(L, J) * D  # d r / d u, u = x / D
         r = _whiten(L, res.z - Z[s])
@@ -298,7 +308,7 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
                 break
             du = np.einsum("kij,kj->ki", gain[k], -r[k])
             xn = x[s[k]] + du * D
-            new = model.evaluate(xn, uv0=uv[k], check_range=False)
+            new = model.evaluate(xn, uv0=uv[k], check_range=False, windows=None if ws is None else ws[k])
             n_evals += k.size
             rn = _whiten(L, new.z - Z[s[k]])
             cn = np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
