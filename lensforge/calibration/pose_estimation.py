@@ -205,6 +205,8 @@ FROZEN_TOL = 0.1
 # then Gauss-Newton steps on the exact Jacobian at most, until a step is below this many sigma in every DOF
 POLISH_STEPS = 4
 POLISH_TOL = 1e-4
+# passes of the windows re-placed at the estimates (a spot on a half pixel may flip back and forth)
+WINDOW_PASSES = 2
 
 
 def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw: dict,
@@ -221,7 +223,9 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
 
     The centroid windows are frozen at the first fit's poses (``ForwardModel.evaluate``'s windows): whole-pixel
     placement makes h jump where a spot crosses a half pixel, by up to ~1 sigma for one lenslet, while after the
-    first fit every spot is within microradians of its final place, far below a pixel. A pose whose rounds do
+    first fit every spot is within microradians of its final place, far below a pixel. At the estimates the
+    windows are placed again by the tracking rule; where one moved, the steps go on with the new ones (at most
+    ``WINDOW_PASSES`` times): noise-free data then give their pose exactly. A pose whose rounds do
     not settle, whose own-model fit fails, or whose polishing step is rejected is fitted on h throughout
     (``_batch_lm``) from where the rounds left it. ``observable``: the statistical rule on the own-centroid model
     at the last round's start."""
@@ -302,25 +306,42 @@ def _frozen_crosstalk_fit(model: ForwardModel, Z: np.ndarray, x0: np.ndarray, kw
         sig_u = np.sqrt(np.diagonal(cov[s], axis1=1, axis2=2)) / D
         sig_u = np.where(np.isfinite(sig_u), sig_u, 1.0)
         uv, live = res.uv, res.valid.copy()
-        for _ in range(POLISH_STEPS):
-            k = np.flatnonzero(live)
-            if k.size == 0:
+        ws = None if ws is None else ws.copy()
+        for _ in range(WINDOW_PASSES + 1):
+            for _ in range(POLISH_STEPS):
+                k = np.flatnonzero(live)
+                if k.size == 0:
+                    break
+                du = np.einsum("kij,kj->ki", gain[k], -r[k])
+                xn = x[s[k]] + du * D
+                new = model.evaluate(xn, uv0=uv[k], check_range=False, windows=None if ws is None else ws[k])
+                n_evals += k.size
+                rn = _whiten(L, new.z - Z[s[k]])
+                cn = np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
+                acc = cn <= cost[s[k]] * (1.0 + 1e-12)
+                a = k[acc]
+                x[s[a]], cost[s[a]], r[a], uv[a] = xn[acc], cn[acc], rn[acc], new.uv[acc]
+                size = np.max(np.abs(du) / sig_u[k], axis=1)
+                small = size < POLISH_TOL
+                # a rejected step below 1e-2 sigma: the point stands (h is flat there at its rounding; the trust
+                # region would stop there too)
+                polished[s[k[(acc & small) | (~acc & (size < 1e-2))]]] = True
+                live[k[~acc | small]] = False
+            k = np.flatnonzero(polished[s])
+            if ws is None or k.size == 0:
                 break
-            du = np.einsum("kij,kj->ki", gain[k], -r[k])
-            xn = x[s[k]] + du * D
-            new = model.evaluate(xn, uv0=uv[k], check_range=False, windows=None if ws is None else ws[k])
+            # the windows the tracking rule places at the estimates (the data's own, noise-free): where they differ
+            # from the frozen ones, on with those (chord steps on the same Jacobian)
+            new = model.evaluate(x[s[k]], uv0=uv[k], check_range=False)
             n_evals += k.size
-            rn = _whiten(L, new.z - Z[s[k]])
-            cn = np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
-            acc = cn <= cost[s[k]] * (1.0 + 1e-12)
-            a = k[acc]
-            x[s[a]], cost[s[a]], r[a], uv[a] = xn[acc], cn[acc], rn[acc], new.uv[acc]
-            size = np.max(np.abs(du) / sig_u[k], axis=1)
-            small = size < POLISH_TOL
-            # a rejected step below 1e-2 sigma: the point stands (h is flat there at its rounding or a window's
-            # whole-pixel jump; the trust region would stop there too)
-            polished[s[k[(acc & small) | (~acc & (size < 1e-2))]]] = True
-            live[k[~acc | small]] = False
+            moved = np.any(new.windows != ws[k], axis=(1, 2)) & new.valid
+            if not moved.any():
+                break
+            k = k[moved]
+            ws[k], uv[k] = new.windows[moved], new.uv[moved]
+            r[k] = _whiten(L, new.z[moved] - Z[s[k]])
+            cost[s[k]] = np.sum(r[k] * r[k], axis=1)
+            polished[s[k]], live[k] = False, True
     rest = np.flatnonzero(lit0 & ~polished)
     if rest.size:  # from where the rounds left it (x0 where the own model's fit failed)
         moved = np.any(x[rest] != x0[rest])
