@@ -374,8 +374,8 @@ def test_pose_estimate_on_the_cells_model_is_exact_without_noise(small_cells_mod
 
 @pytest.mark.slow
 def test_frozen_crosstalk_fit_is_the_whole_model_fit(small_cells_model):
-    # deferred correction (the own-centroid model with the cross-talk's correction frozen, then one Gauss-Newton
-    # step on the exact Jacobian) against the trust region on the 'cells' model throughout: the same minimum and
+    # deferred correction (the own-centroid model with the cross-talk's correction frozen, then Gauss-Newton
+    # steps on the exact Jacobian) against the trust region on the 'cells' model throughout: the same minimum and
     # covariance on noisy data, two poses at once, from a start far beyond the noise
     from lensforge.calibration.pose_estimation import estimate_poses_batch
 
