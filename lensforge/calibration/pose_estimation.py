@@ -140,8 +140,7 @@ class _Start:
 
     uv: np.ndarray  # (1, ...) aimed rays
     z: np.ndarray  # (1, m) h(x0)
-    Jw: np.ndarray  # (1, m, 6) whitened Jacobian
-    exact: bool  # Jw is the exact Jacobian (else the iteration one, ``ForwardModel.jacobians``)
+    Jw: np.ndarray  # (1, m, 6) whitened Jacobian: the exact one, or on a cross-talk bench the iteration one
     basis: np.ndarray  # (6, k) estimated directions in scaled units
     observable: np.ndarray  # (6,)
     null: np.ndarray  # (6,) DOF moved by a numerically null direction
@@ -158,12 +157,15 @@ def _gauss_newton_cov(Jw: np.ndarray, basis: np.ndarray, null: np.ndarray, D: np
     return cb, _mark_unobservable((basis @ cb @ basis.T) * np.outer(D, D), null)
 
 
+def _within(lim, x: np.ndarray) -> np.ndarray:
+    """(P,) bool: the poses x (P, 6) inside the pose limits ``lim`` (``Bench.pose_limits``)."""
+    return np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1) & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad)
+
+
 def _batch_result(bench: Bench, x, cov, cost, status, iterations: int, n_evals: int, observable, n_iter):
     """The BatchPoseEstimate of poses x (P, 6) that stopped with ``status``: converged where stopped, finite and
     in the bench's pose range."""
-    lim = bench.pose_limits
-    in_range = (np.all(np.abs(x[:, :3]) <= lim.translation_mm, axis=1)
-                & (np.linalg.norm(x[:, 3:], axis=1) <= lim.rotation_rad))
+    in_range = _within(bench.pose_limits, x)
     stopped = np.isin(status, ("converged", "flat", "far")) & np.isfinite(cost)
     return BatchPoseEstimate(poses=x, cov=cov, chi2=np.where(np.isfinite(cost), cost, np.inf),
                              converged=stopped & in_range, iterations=iterations, n_evals=n_evals,
@@ -428,9 +430,7 @@ def _batch_lm(model: ForwardModel, Z: np.ndarray, x: np.ndarray, *, max_iter: in
     # on a cross-talk bench the iterations take the own centroid's Jacobians (``ForwardModel.jacobians``,
     # exact=False: ~9x cheaper there); a pose that stops on them goes on from there with exact ones, so the
     # minimum and the covariance are the exact model's
-    exact = np.full(P, not model.crosstalk)
-    if _start is not None:
-        exact[:] = _start.exact
+    exact = np.full(P, not model.crosstalk)  # as the start's Jw (``_Start``)
 
     def linearise(idx):
         nonlocal n_evals
@@ -472,9 +472,7 @@ def _batch_lm(model: ForwardModel, Z: np.ndarray, x: np.ndarray, *, max_iter: in
             # undamped GN, a weak direction that would jump out keeps the small region
             gn = eigen_step(A, g, np.full(a.size, np.inf))[0]
             xg = x[a] + gn * D
-            inside = (np.all(np.abs(xg[:, :3]) <= lim.translation_mm, axis=1)
-                      & (np.linalg.norm(xg[:, 3:], axis=1) <= lim.rotation_rad))
-            delta[a] = np.where(inside, np.minimum(np.maximum(delta[a], np.linalg.norm(gn, axis=1)), cap), delta[a])
+            delta[a] = np.where(_within(lim, xg), np.minimum(np.maximum(delta[a], np.linalg.norm(gn, axis=1)), cap), delta[a])
         du, _ = eigen_step(A, g, delta[a])
         xn = x[a] + du * D
         rn_res = model.evaluate(xn, uv0=uv[a], check_range=False)
@@ -652,8 +650,8 @@ def _lm(prob: _Problem, *, max_iter: int = 50, tol: float = 1e-8, **_):
     """Least squares on the whitened residual for one measurement: ``estimate_poses_batch``
     with P = 1, started from what ``estimate_pose_model`` computed at x0 (rays, h(x0),
     Jacobian, the estimated directions)."""
-    start = _Start(uv=prob.uv0[None], z=prob.z0[None], Jw=prob.Jw0[None], exact=not prob.model.crosstalk,
-                   basis=prob.basis, observable=prob.observable, null=prob.null)
+    start = _Start(uv=prob.uv0[None], z=prob.z0[None], Jw=prob.Jw0[None], basis=prob.basis,
+                   observable=prob.observable, null=prob.null)
     b = estimate_poses_batch(prob.model, prob.z[None], prob.x0[None], max_iter=max_iter, xtol=tol, ftol=tol,
                              _start=start)
     status = str(b.status[0])
