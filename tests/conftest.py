@@ -1,7 +1,12 @@
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 import lensforge as lf
+
+# one BLAS thread per test worker, as the CLI (pytest -n 2 on two cores: threaded BLAS in each worker
+# oversubscribes them; a 'cells' pose evaluation took 1.8x the CPU)
+_ONE_BLAS_THREAD = threadpool_limits(limits=1)
 
 
 @pytest.fixture(scope="session")

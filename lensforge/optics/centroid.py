@@ -384,7 +384,7 @@ def _rs_factors(er: np.ndarray, ei: np.ndarray, rem: dict, R: int):
     """The field's x and y factors (each (Re, Im) (m, B, 5, S, R+1)) with the remainder to first order:
     sum_b' Y_b'(y) X_b'(x), Y_b' = the y moments of e_y^b', X_b' = sum_a c_ab' (x moments of e_x^a), c_00 = 1;
     er, ei from ``_rs_powers``."""
-    exr, exi = er[:, :, :, 0], ei[:, :, :, 0]  # (m, B, 5 (a), S, R+5), each a contiguous
+    exr, exi = er[:, :, :, 0, :, :R + 1], ei[:, :, :, 0, :, :R + 1]  # (m, B, 5 (a), S, R+1): the scratch r left out
     xr, xi = np.empty_like(exr), np.empty_like(exi)
     xr[:, :, 0], xi[:, :, 0] = exr[:, :, 0], exi[:, :, 0]
     started = {0}
@@ -401,7 +401,7 @@ def _rs_factors(er: np.ndarray, ei: np.ndarray, rem: dict, R: int):
             xr[:, :, b] += vr * exr[:, :, a]
             xi[:, :, b] += vr * exi[:, :, a]
     assert started == set(range(5)), "every y power 0 .. 4 has a remainder term"
-    return (xr[..., :R + 1], xi[..., :R + 1]), (er[:, :, :, 1, :, :R + 1], ei[:, :, :, 1, :, :R + 1])
+    return (xr, xi), (er[:, :, :, 1, :, :R + 1], ei[:, :, :, 1, :, :R + 1])
 
 
 def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sensor, wavelength_nm: float,
