@@ -7,6 +7,8 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
          the session study (calibrate with the cross-talk model against the physical sensor)
          [--focal-sigma 0.01] [--true-focal 5.226]: calibrate estimates the focal-length gain; the physical
          lenslets' true focal length differs from the bench's, which the device converts with
+     ... --combine S0.json S1.json ... [--json ALL.json]: session-study runs (e.g. one seed a run, both sensors)
+         reported as one study, with the physical / own-model Z error ratio over the seeds both measured
      ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
      ... --pose-bias COMPARE.json [--models none,cells]: the poses estimated from the physical Zernikes (Table 1)
      ... --cost: S(p) with and without the cross-talk model, one physical pose
@@ -91,11 +93,8 @@ def _reject_constant(name: str):
     raise ValueError(f"{name} is not a number")
 
 
-def load_compare(path: str) -> dict:
-    """A compare JSON (this script's --json of a compare run), checked: every key 'label/variant' with its Noll
-    ``modes`` and ``rows`` of a finite 6-vector ``pose`` and finite ``z_physical_um`` / ``z_model_um`` per mode.
-    A bad file is a ConfigError naming the file, the entry and the fix."""
-    fix = "give the --json file a compare run wrote (--lenses/--design ... --json FILE)"
+def _read_json(path: str, fix: str, what: str) -> dict:
+    """A JSON object of at least one entry (no NaN or infinity) from path; else a ConfigError naming it and fix."""
     try:
         with open(path, encoding="utf-8") as fh:
             d = json.load(fh, parse_constant=_reject_constant)
@@ -104,7 +103,43 @@ def load_compare(path: str) -> dict:
     except (ValueError, UnicodeDecodeError) as e:
         raise ConfigError(f"{path}: not valid JSON ({e}): {fix}") from None
     if not isinstance(d, dict) or not d:
-        raise ConfigError(f"{path}: no compare entries: {fix}")
+        raise ConfigError(f"{path}: no {what}: {fix}")
+    return d
+
+
+_SESSION_LISTS = ("nees", "chi2_dof", "p_values", "z_translation_error_mm", "z_rotation_error_deg", "seeds")
+
+
+def load_sessions(path: str) -> dict:
+    """A session-study JSON (``--sessions ... --json``), checked: per sensor, the lists of ``_SESSION_LISTS``, finite
+    and of one length, and the inside-3-sigma fractions. A bad file is a ConfigError naming the file, the entry and
+    the fix."""
+    fix = "give the --json files session-study runs wrote (--sessions N ... --json FILE)"
+    d = _read_json(path, fix, "sensors")
+    for sensor, r in d.items():
+        where = f"{path}: sensor {sensor!r}"
+        if not isinstance(r, dict):
+            raise ConfigError(f"{where}: not a session-study record: {fix}")
+        lengths = set()
+        for key in _SESSION_LISTS:
+            v = r.get(key)
+            if not (isinstance(v, list) and v and all(isinstance(x, (int, float)) for x in v) and np.all(np.isfinite(v))):
+                raise ConfigError(f"{where}: {key!r} must be a non-empty list of finite numbers: {fix}")
+            lengths.add(len(v))
+        if len(lengths) > 1:
+            raise ConfigError(f"{where}: the lists {', '.join(_SESSION_LISTS)} differ in length: {fix}")
+        for key in ("inside_3sigma", "inside_3sigma_each_axis"):
+            if not (isinstance(r.get(key), (int, float)) and 0.0 <= r[key] <= 1.0):
+                raise ConfigError(f"{where}: {key!r} must be a fraction in [0, 1]: {fix}")
+    return d
+
+
+def load_compare(path: str) -> dict:
+    """A compare JSON (this script's --json of a compare run), checked: every key 'label/variant' with its Noll
+    ``modes`` and ``rows`` of a finite 6-vector ``pose`` and finite ``z_physical_um`` / ``z_model_um`` per mode.
+    A bad file is a ConfigError naming the file, the entry and the fix."""
+    fix = "give the --json file a compare run wrote (--lenses/--design ... --json FILE)"
+    d = _read_json(path, fix, "compare entries")
     for key, r in d.items():
         where = f"{path}: entry {key!r}"
         if key.count("/") != 1 or not isinstance(r, dict):
@@ -345,6 +380,8 @@ def main(argv=None):
                          "the device converts with)")
     ap.add_argument("--focal-sigma", type=float, default=None,
                     help="session study: calibrate's relative prior 1-sigma of the focal length (estimates the gain)")
+    ap.add_argument("--combine", nargs="+", default=None, metavar="SESSIONS.json",
+                    help="merge session-study JSONs (e.g. one seed a run) and report them as one study")
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk models at its poses")
     ap.add_argument("--models", default=None, help="--validate: the cross-talk models to score (default "
                     "neighbours,cells); --pose-bias: the sensor models to estimate with (default none,cells)")
@@ -384,6 +421,11 @@ def main(argv=None):
         return
     if a.validate:
         out = validate(a.validate, a.design, tuple((a.models or "neighbours,cells").split(",")))
+        if a.json:
+            write_atomic(a.json, json.dumps(out))
+        return
+    if a.combine:
+        out = combine(a.combine)
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return
@@ -437,19 +479,60 @@ def sessions(design: str, n_sessions: int, spp: int, sensors=("model", "physical
         r = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
         r["seconds"] = time.perf_counter() - t0
         out[s] = r
-        nees = np.array(r["nees"])
-        print(f"{s:9s} NEES median {np.median(nees):8.1f} mean/6 {np.mean(nees) / 6:7.2f} | chi2/dof "
-              f"{np.min(r['chi2_dof']):.2f}-{np.max(r['chi2_dof']):.2f} | p<0.05 {np.mean(np.array(r['p_values']) < 0.05):.2f}"
-              f" | Z err {np.median(r['z_translation_error_mm']) * 1e3:.1f} um, {np.median(r['z_rotation_error_deg']) * 17.453:.2f} mrad"
-              f" | inside 3 sigma {r['inside_3sigma']:.2f} | failed {len(r['failed'])}", flush=True)
-        est = [(e["lenslet_focal_mm"], e["lenslet_focal_std_mm"], t) for e, t in
-               zip(r.get("sensor", []), r.get("lenslet_focal_true_mm", [])) if e]
-        if est:  # the joint fit's focal-length estimates against the simulated sensor's
-            f_est, f_std, f_true = (np.array(v) for v in zip(*est))
-            print(f"{'':9s} lenslet focal length (true {f_true[0]:.4f} mm): estimates {np.round(f_est, 4).tolist()} mm, "
-                  f"sigma {np.round(f_std, 4).tolist()}, error/sigma {np.round((f_est - f_true) / f_std, 2).tolist()}",
-                  flush=True)
+        print(session_summary(s, r), flush=True)
     return out
+
+
+def session_summary(sensor: str, r: dict) -> str:
+    """The session study's line for one sensor's record (``sessions``, ``combine``): NEES, chi2, Z error, inside
+    3 sigma, and the joint fit's focal-length estimates against the simulated sensor's where it estimated them."""
+    nees = np.array(r["nees"])
+    line = (f"{sensor:9s} {nees.size} sessions | NEES median {np.median(nees):6.2f} mean/6 {np.mean(nees) / 6:5.2f} | "
+            f"chi2/dof {np.min(r['chi2_dof']):.2f}-{np.max(r['chi2_dof']):.2f} | p<0.05 "
+            f"{np.mean(np.array(r['p_values']) < 0.05):.2f} | Z err {np.median(r['z_translation_error_mm']) * 1e3:.1f} um, "
+            f"{np.median(r['z_rotation_error_deg']) * np.pi / 0.18:.2f} mrad | inside 3 sigma {r['inside_3sigma']:.2f} | "
+            f"failed {len(r['failed'])}")
+    est = [(e["lenslet_focal_mm"], e["lenslet_focal_std_mm"], t) for e, t in
+           zip(r.get("sensor", []), r.get("lenslet_focal_true_mm", [])) if e]
+    if est:  # the joint fit's focal-length estimates against the simulated sensor's
+        f_est, f_std, f_true = (np.array(v) for v in zip(*est))
+        line += (f"\n{'':9s} lenslet focal length (true {f_true[0]:.4f} mm): estimates {np.round(f_est, 4).tolist()} "
+                 f"mm, sigma {np.round(f_std, 4).tolist()}, error/sigma {np.round((f_est - f_true) / f_std, 2).tolist()}")
+    return line
+
+
+def combine(paths) -> dict:
+    """Session-study JSONs (``--sessions ... --json``, e.g. one seed a run) merged per sensor: the per-session lists
+    joined, the inside-3-sigma fractions weighted by their sessions' counts, the seconds summed. A seed that occurs
+    twice for one sensor is refused (the same session counted twice)."""
+    merged = {}
+    for path in paths:
+        for sensor, r in load_sessions(path).items():
+            m = merged.setdefault(sensor, {"_n": 0})
+            n = len(r["nees"])
+            dup = set(m.get("seeds", [])) & set(r["seeds"])
+            if dup:
+                raise ConfigError(f"{path}: sensor {sensor!r} seeds {sorted(dup)} already read from another file; "
+                                  "combine each session once")
+            for key in ("inside_3sigma", "inside_3sigma_each_axis"):
+                m[key] = (m.get(key, 0.0) * m["_n"] + r[key] * n) / max(m["_n"] + n, 1)
+            for key, v in r.items():
+                if isinstance(v, list):
+                    m.setdefault(key, []).extend(v)
+            m["seconds"] = m.get("seconds", 0.0) + r.get("seconds", 0.0)
+            m["_n"] += n
+    for sensor, m in merged.items():
+        del m["_n"]
+        print(session_summary(sensor, m), flush=True)
+    if {"model", "physical"} <= merged.keys():  # the issue's yardstick: physical Z error / own-model Z error
+        common = sorted(set(merged["model"]["seeds"]) & set(merged["physical"]["seeds"]))
+        if common:  # the same sessions (seeds: the same robot and sensor noise draws) measured both ways
+            med = {s: {key: np.median([v for seed, v in zip(merged[s]["seeds"], merged[s][key]) if seed in common])
+                       for key in ("z_translation_error_mm", "z_rotation_error_deg")} for s in ("model", "physical")}
+            t, r = (med["physical"][key] / med["model"][key] for key in ("z_translation_error_mm", "z_rotation_error_deg"))
+            print(f"median Z error physical / model over the {len(common)} seeds both measured: translation {t:.2f}, "
+                  f"rotation {r:.2f}", flush=True)
+    return merged
 
 
 if __name__ == "__main__":

@@ -202,6 +202,38 @@ def test_a_session_measured_by_the_physical_sensor(bench):
     assert np.median(dz4) > 0.002 and np.all(dz4 > 5e-4), dz4  # a few nm (coarse settings: 1.4-8 nm)
 
 
+def test_session_study_runs_combine(tmp_path):
+    # the session study split over runs (one seed a run) is reported as one: lists joined, fractions weighted,
+    # the physical / model Z error ratio over the seeds both measured; a seed read twice or a NaN is refused
+    import json
+    import subprocess
+    import sys
+
+    def run(name, sensor, seeds, nees, err_mm, inside):
+        k = len(seeds)
+        rec = {"nees": nees, "inside_3sigma": inside, "inside_3sigma_each_axis": inside, "chi2_dof": [1.0] * k,
+               "p_values": [0.5] * k, "z_translation_error_mm": err_mm, "z_rotation_error_deg": [0.05] * k,
+               "seeds": seeds, "sensor": [None] * k, "lenslet_focal_true_mm": [5.2] * k, "failed": [], "seconds": 1.0}
+        (tmp_path / name).write_text(json.dumps({sensor: rec}))
+        return str(tmp_path / name)
+
+    files = [run("p0.json", "physical", [0], [12.0], [0.030], 0.0), run("p1.json", "physical", [1, 2], [3.0, 6.0],
+             [0.020, 0.040], 1.0), run("m.json", "model", [0, 1, 2, 3], [6.0] * 4, [0.01, 0.02, 0.02, 0.5], 1.0)]
+    script = [sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "bench_sensor_physics.py"), "--combine"]
+    out = subprocess.run(script + files + ["--json", str(tmp_path / "all.json")], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "physical  3 sessions | NEES median   6.00 mean/6  1.17" in out.stdout
+    assert "inside 3 sigma 0.67" in out.stdout
+    assert "over the 3 seeds both measured: translation 1.50" in out.stdout  # 30 um / 20 um
+    merged = json.loads((tmp_path / "all.json").read_text())
+    assert merged["physical"]["seeds"] == [0, 1, 2] and merged["physical"]["seconds"] == 2.0
+    twice = subprocess.run(script + [files[0], files[0]], capture_output=True, text=True)
+    assert twice.returncode == 2 and twice.stderr.startswith("error: ") and "seeds [0]" in twice.stderr
+    (tmp_path / "nan.json").write_text('{"physical": {"nees": [NaN]}}')
+    bad = subprocess.run(script + [str(tmp_path / "nan.json")], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "nan.json" in bad.stderr
+
+
 @pytest.mark.slow
 def test_physical_sessions_calibrate_honestly():
     # measured one seed at a time (`bench_sensor_physics.py --design polynomial --sessions 1 --seed S --sensors
