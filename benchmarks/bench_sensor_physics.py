@@ -9,7 +9,8 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
          lenslets' true focal length differs from the bench's, which the device converts with
      ... --combine S0.json S1.json ... [--json ALL.json]: session-study runs (e.g. one seed a run, both sensors)
          reported as one study, with the physical / own-model Z error ratio over the seeds both measured
-     ... --design DESIGN.json --validate COMPARE.json: the cross-talk model at a compare run's poses
+     ... --design DESIGN.json --validate COMPARE.json [--assume centroid_threshold=0]: the cross-talk model at a
+         compare run's poses (--assume: the model takes another sensor setting than the reference: a wrong one)
      ... --pose-bias COMPARE.json [--models none,cells]: the poses estimated from the physical Zernikes (Table 1)
      ... --cost: S(p) with and without the cross-talk model, one physical pose
      ... --fit-cost [--no-whole]: one pose estimate on 'cells', the frozen cross-talk correction against the
@@ -174,10 +175,11 @@ def _entry_lens(path: str, key: str, design: str | None):
     return (variant, *load_design_lens(design if label == "design" else label))
 
 
-def validate(path: str, design: str | None, models=("neighbours", "cells")) -> dict:
+def validate(path: str, design: str | None, models=("neighbours", "cells"), assume: dict | None = None) -> dict:
     """The fast cross-talk models (sensor.crosstalk, ``models``) at the poses of a compare() JSON: per pose
     max |dz|/sigma of the old model (the compare run's own-centroid model) and of each, against the physical
-    reference."""
+    reference. assume: sensor settings the fast models take instead of the compare's (e.g. centroid_threshold 0
+    against a cut5 reference: what a wrong noise-cut setting costs)."""
     d = load_compare(path)
     out = {}
     for key, r in d.items():
@@ -191,7 +193,8 @@ def validate(path: str, design: str | None, models=("neighbours", "cells")) -> d
         rows = [{"old_sigma": None} for _ in r["rows"]]
         line = f"{key:28s} max |dz|/sigma old: "
         for mname in models:
-            b = bench.replace(sensor={**changes, "crosstalk": mname}, **({"laser": laser} if laser else {}))
+            b = bench.replace(sensor={**changes, **(assume or {}), "crosstalk": mname},
+                              **({"laser": laser} if laser else {}))
             model = ForwardModel(b, lens)
             _check_modes(path, key, r, model)
             sig = np.sqrt(np.diag(model.noise_cov))
@@ -357,6 +360,23 @@ def _floats(n: int | None = None):
     return parse
 
 
+_ASSUMABLE = ("centroid_threshold", "lenslet_focal_mm", "centroid_window_px")
+
+
+def _setting(text: str) -> tuple:
+    """argparse type: 'name=value' for a numeric sensor setting of ``_ASSUMABLE``; else a usage error (exit 2)."""
+    name, _, value = text.partition("=")
+    if name not in _ASSUMABLE:
+        raise argparse.ArgumentTypeError(f"expected one of {', '.join(_ASSUMABLE)} as NAME=VALUE, got {text!r}")
+    try:
+        v = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{name}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"{name}: expected a finite number >= 0, got {value!r}")
+    return name, (int(v) if name == "centroid_window_px" else v)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--design", default=None)
@@ -385,6 +405,9 @@ def main(argv=None):
     ap.add_argument("--validate", default=None, help="a compare JSON: score the cross-talk models at its poses")
     ap.add_argument("--models", default=None, help="--validate: the cross-talk models to score (default "
                     "neighbours,cells); --pose-bias: the sensor models to estimate with (default none,cells)")
+    ap.add_argument("--assume", type=_setting, action="append", default=[], metavar="SETTING=VALUE",
+                    help="--validate: a sensor setting the fast models take instead of the compare's (repeatable; "
+                         "e.g. centroid_threshold=0 against a cut5 reference)")
     ap.add_argument("--pose-bias", default=None, help="a compare JSON: estimate its poses from the physical "
                     "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
@@ -420,7 +443,7 @@ def main(argv=None):
             write_atomic(a.json, json.dumps(out))
         return
     if a.validate:
-        out = validate(a.validate, a.design, tuple((a.models or "neighbours,cells").split(",")))
+        out = validate(a.validate, a.design, tuple((a.models or "neighbours,cells").split(",")), dict(a.assume))
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return

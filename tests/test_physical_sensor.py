@@ -232,6 +232,10 @@ def test_session_study_runs_combine(tmp_path):
     (tmp_path / "nan.json").write_text('{"physical": {"nees": [NaN]}}')
     bad = subprocess.run(script + [str(tmp_path / "nan.json")], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "nan.json" in bad.stderr
+    # --validate's assumed sensor settings: a known numeric one, finite
+    for wrong in ("pitch_mm=0.15", "centroid_threshold=nan", "centroid_threshold=-0.1", "centroid_threshold"):
+        r = subprocess.run(script[:-1] + ["--validate", "x.json", "--assume", wrong], capture_output=True, text=True)
+        assert r.returncode == 2 and "--assume" in r.stderr, (wrong, r.stderr)
 
 
 @pytest.mark.slow
