@@ -243,6 +243,22 @@ def _moments(beta: np.ndarray, alpha: np.ndarray, gamma: np.ndarray, delta: np.n
     return out.reshape(np.shape(beta) + (int(r_max) + 1, 8))
 
 
+def _moments_of_rows(beta: np.ndarray, alpha: np.ndarray, gamma: np.ndarray, delta: np.ndarray, r_max: int) -> np.ndarray:
+    """``_moments`` of inputs of one shape, computed once per run of equal rows (leading index): a complex step along
+    d directions repeats each lenslet's real inputs in d consecutive rows (``centroid.cell_shift``)."""
+    n = beta.shape[0] if beta.ndim else 0
+    if n < 2:
+        return _moments(beta, alpha, gamma, delta, r_max)
+    repeat = np.ones(n - 1, bool)
+    for v in (beta, alpha, gamma, delta):
+        repeat &= np.all(np.reshape(v[1:] == v[:-1], (n - 1, -1)), axis=1)
+    if not repeat.any():
+        return _moments(beta, alpha, gamma, delta, r_max)
+    new = np.r_[True, ~repeat]
+    first = np.flatnonzero(new)
+    return _moments(beta[first], alpha[first], gamma[first], delta[first], r_max)[np.cumsum(new) - 1]
+
+
 def square_aperture_moments(beta, alpha, r_max: int = 0, gamma=0.0, delta=0.0) -> tuple[np.ndarray, np.ndarray]:
     """(Re, Im) (..., r_max + 1) of the moments M_r = int_{-1/2}^{1/2} t^r exp(gamma t + delta t^2 + i alpha t^2
     - i beta t) dt, r = 0 .. r_max (M_0 = A; gamma, delta: the amplitude's gradient and curvature across the
@@ -255,7 +271,7 @@ def square_aperture_moments(beta, alpha, r_max: int = 0, gamma=0.0, delta=0.0) -
     if not any(np.iscomplexobj(v) for v in (beta, alpha, gamma, delta)):
         j = _moments(beta, alpha, gamma, delta, r_max)
         return j[..., 0], j[..., 1]
-    j = _moments(np.real(beta), np.real(alpha), np.real(gamma), np.real(delta), r_max)
+    j = _moments_of_rows(np.real(beta), np.real(alpha), np.real(gamma), np.real(delta), r_max)
     db, da, dg, dd = (np.imag(v)[..., None] for v in (beta, alpha, gamma, delta))
     # dM/ddelta = M_(r+2) = -i dM/dalpha: (Re, Im) = (j5, -j4)
     re = j[..., 0] + 1j * (j[..., 2] * db + j[..., 4] * da + j[..., 6] * dg + j[..., 5] * dd)

@@ -887,14 +887,17 @@ def cell_shift(spot: np.ndarray, cells: dict, lit_centres: np.ndarray, neighbour
     P = int(np.prod(lead, dtype=int))
     flat = {key: np.reshape(v, (P,) + v.shape[len(lead):]) for key, v in cells.items()}
     sp = spot.reshape(P * n, 2)
-    rows = np.stack(np.meshgrid(np.arange(P), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
+    # rows (leading index, pupil lenslet), lenslet-major: a complex step's directions of one lenslet share a pass,
+    # where their real parts are computed once (``aperture._moments_of_rows``); each row's result is its own
+    rows = np.stack(np.meshgrid(np.arange(P), np.arange(n), indexing="xy"), axis=-1).reshape(-1, 2)
+    flat_row = rows[:, 0] * n + rows[:, 1]  # into sp
     out = np.empty(sp.shape, dtype=np.result_type(spot, *[v.dtype for v in flat.values()]))
     st_all = np.empty(sp.shape)
     frozen = None if windows is None else np.broadcast_to(windows, lead + (n, 2)).reshape(-1, 2)
     first = None if start is None else np.broadcast_to(start, spot.shape).reshape(-1, 2)
     for a in range(0, len(rows), _XT_CHUNK):
-        c = slice(a, a + _XT_CHUNK)
-        block = _cell_block(rows[c], flat, neighbours, lit_centres, sensor, wavelength_nm, exact)
+        c = flat_row[a:a + _XT_CHUNK]
+        block = _cell_block(rows[a:a + _XT_CHUNK], flat, neighbours, lit_centres, sensor, wavelength_nm, exact)
         out[c], st_all[c] = _tracked_window_shift(sp[c], block, sensor, wavelength_nm, iterations, CELL_SUB,
                                                   _window_centroid, None if frozen is None else frozen[c],
                                                   None if first is None else first[c])
