@@ -12,6 +12,8 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      ... --design DESIGN.json --validate COMPARE.json [--assume centroid_threshold=0]: the cross-talk model at a
          compare run's poses (--assume: the model takes another sensor setting than the reference: a wrong one)
      ... --pose-bias COMPARE.json [--models none,cells]: the poses estimated from the physical Zernikes (Table 1)
+     ... --round-parts [--lenses polynomial] [--poses 2]: round 140 um lenslets against square ones, every third
+         lit: the physical Zernike shift and the own spot's share of it (the own centroid over the disc)
      ... --cost: S(p) with and without the cross-talk model, one physical pose
      ... --fit-cost [--no-whole]: one pose estimate on 'cells', the frozen cross-talk correction against the
          trust region on the whole model (time, difference in sigma)
@@ -298,6 +300,46 @@ def fit_cost(lens_name: str = "polynomial", whole: bool = True, seed: int = 0) -
     return out
 
 
+def _disc_rule(diameter_rel: float, n_r: int = 4, n_t: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets (n_r n_t, 2) in pitches, weights summing to 1): a polar rule over a centred disc of diameter
+    diameter_rel pitches, Gauss-Legendre in r^2 (uniform in area) and the midpoint rule in angle."""
+    u, wu = np.polynomial.legendre.leggauss(n_r)
+    rho = 0.5 * diameter_rel * np.sqrt(0.5 * (u + 1.0))
+    th = 2 * np.pi * (np.arange(n_t) + 0.5) / n_t
+    off = np.stack([np.outer(rho, np.cos(th)).ravel(), np.outer(rho, np.sin(th)).ravel()], axis=1)
+    return off, np.repeat(0.5 * wu / n_t, n_t)
+
+
+def round_parts(lens_name: str = "polynomial", n_poses: int = 2, spp: int = 4, margin: int = 5) -> dict:
+    """Where round lenslets (140 um, dark gaps) move the physical Zernikes, with every third lenslet lit (no near
+    cross-talk): physical round - square, against the own spot's share, the own-centroid model's irradiance-weighted
+    slope over the disc instead of the square (``_disc_rule``), at nominal and the plan's extreme poses; sigma of
+    lensforge's own noise."""
+    lens, bench = load_design_lens(lens_name)
+    poses = extreme_poses(lens, bench, n_poses)
+    model = ForwardModel(bench, lens)
+    disc = ForwardModel(bench, lens)
+    cfg = {a: PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin, lit_stride=3, aperture=a)
+           for a in ("square", "round")}
+    disc.quad_offsets, disc.quad_weights = _disc_rule(cfg["round"].lenslet_diameter_mm / bench.sensor.pitch_mm)
+    disc.targets = np.ascontiguousarray((disc.lit_centres[:, None, :]
+                                         + bench.sensor.pitch_mm * disc.quad_offsets[None]).reshape(-1, 2))
+    sig = np.sqrt(np.diag(model.noise_cov))
+    z_sq, z_disc = model.evaluate(poses, check_range=False).z, disc.evaluate(poses, check_range=False).z
+    rows = []
+    for i, x in enumerate(poses):
+        phys = {a: physical_measure(model, x, c).z for a, c in cfg.items()}
+        row = {"pose": x.tolist(), "physical_round_minus_square": ((phys["round"] - phys["square"]) / sig).tolist(),
+               "own_disc_minus_square": ((z_disc[i] - z_sq[i]) / sig).tolist()}
+        rows.append(row)
+        print(f"{lens_name} pose {i}: physical round - square "
+              + " ".join(f"Z{m}:{v:+.1f}" for m, v in zip(model.modes, row["physical_round_minus_square"]))
+              + " | own spot's share (disc - square): "
+              + " ".join(f"Z{m}:{v:+.1f}" for m, v in zip(model.modes, row["own_disc_minus_square"]) if abs(v) >= 0.1),
+              flush=True)
+    return {"modes": model.modes.tolist(), "rows": rows}
+
+
 def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin: int = 5,
             design: str | None = None, beam_offset_mm=(0.0, 0.0)) -> dict:
     """Physical reference minus fast model (sigma per mode) for spherical waves converging to R mm after
@@ -410,6 +452,8 @@ def main(argv=None):
                          "e.g. centroid_threshold=0 against a cut5 reference)")
     ap.add_argument("--pose-bias", default=None, help="a compare JSON: estimate its poses from the physical "
                     "Zernikes with each --models model (the Table-1 analogue; default none,cells)")
+    ap.add_argument("--round-parts", action="store_true", help="round lenslets against square, every third lit: "
+                    "the physical shift and the own spot's share (first of --lenses, --poses)")
     ap.add_argument("--cost", action="store_true", help="time S(p) with and without cross-talk, and a physical pose")
     ap.add_argument("--fit-cost", action="store_true", help="time one pose estimate on 'cells': frozen cross-talk "
                     "correction against the whole model (--no-whole: the frozen one only)")
@@ -426,6 +470,11 @@ def main(argv=None):
         if any(r == 0 for r in a.radii):
             ap.error("--radii: a radius of 0 is no wave (a huge one is a plane wave)")
         out = spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design, beam_offset_mm=a.beam_offset)
+        if a.json:
+            write_atomic(a.json, json.dumps(out))
+        return
+    if a.round_parts:
+        out = round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)
         if a.json:
             write_atomic(a.json, json.dumps(out))
         return
