@@ -42,6 +42,21 @@ def test_aperture_moments_and_their_derivatives_are_the_integrals():
     assert np.all(im == 0)
 
 
+def test_aperture_moments_of_repeated_rows_are_each_rows():
+    # a complex step repeats a lenslet's real inputs in consecutive rows (one per direction), and the kernel runs
+    # once per run of equal rows: each row's moments and derivative are exactly what the row alone gives
+    rng = np.random.default_rng(7)
+    base = rng.uniform(-40, 40, (3, 5, 2)), rng.uniform(-3, 3, (3, 1, 2)), rng.uniform(-1, 1, (3, 1, 2))
+    rows = [0, 0, 0, 1, 2, 2, 0]  # runs of equal rows, and a row equal to one that is not its neighbour
+    steps = rng.standard_normal((len(rows), 5, 2))
+    beta, alpha, gamma = (v[rows] for v in base)
+    re, im = square_aperture_moments(beta + 1e-30j * steps, alpha, 4, gamma, 0.01)
+    for i, k in enumerate(rows):
+        r1, i1 = square_aperture_moments(base[0][k] + 1e-30j * steps[i], base[1][k], 4, base[2][k], 0.01)
+        np.testing.assert_array_equal(re[i], r1)
+        np.testing.assert_array_equal(im[i], i1)
+
+
 def test_aperture_moments_with_an_amplitude_gradient_and_curvature_are_the_integrals():
     # M_r = int t^r exp(gamma t + delta t^2 + i alpha t^2 - i beta t) dt: the amplitude's gradient (up to e^2.6 across
     # a sub-aperture) and curvature (the Gaussian beam's ln I curvature is ~0.01), with their complex-step jets
