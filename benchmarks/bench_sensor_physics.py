@@ -318,12 +318,9 @@ def round_parts(lens_name: str = "polynomial", n_poses: int = 2, spp: int = 4, m
     lens, bench = load_design_lens(lens_name)
     poses = extreme_poses(lens, bench, n_poses)
     model = ForwardModel(bench, lens)
-    disc = ForwardModel(bench, lens)
     cfg = {a: PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin, lit_stride=3, aperture=a)
            for a in ("square", "round")}
-    disc.quad_offsets, disc.quad_weights = _disc_rule(cfg["round"].lenslet_diameter_mm / bench.sensor.pitch_mm)
-    disc.targets = np.ascontiguousarray((disc.lit_centres[:, None, :]
-                                         + bench.sensor.pitch_mm * disc.quad_offsets[None]).reshape(-1, 2))
+    disc = ForwardModel(bench, lens, quadrature=_disc_rule(cfg["round"].lenslet_diameter_mm / bench.sensor.pitch_mm))
     sig = np.sqrt(np.diag(model.noise_cov))
     z_sq, z_disc = model.evaluate(poses, check_range=False).z, disc.evaluate(poses, check_range=False).z
     rows = []
@@ -466,49 +463,32 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
-    if a.spheres:
-        if any(r == 0 for r in a.radii):
-            ap.error("--radii: a radius of 0 is no wave (a huge one is a plane wave)")
-        out = spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design, beam_offset_mm=a.beam_offset)
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
-    if a.round_parts:
-        out = round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
+    if a.spheres and any(r == 0 for r in a.radii):
+        ap.error("--radii: a radius of 0 is no wave (a huge one is a plane wave)")
     if a.cost:
         cost()
         return
-    if a.fit_cost:
-        out = fit_cost(whole=not a.no_whole, seed=a.seed)
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
-    if a.pose_bias:
-        out = pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")), a.design)
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
-    if a.validate:
-        out = validate(a.validate, a.design, tuple((a.models or "neighbours,cells").split(",")), dict(a.assume))
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
-    if a.combine:
-        out = combine(a.combine)
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
-    if a.sessions:
-        ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
-        out = sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")), calibration_tolerances=ct,
-                       calibration_crosstalk=a.calibration_crosstalk, true_focal_mm=a.true_focal,
-                       focal_sigma=a.focal_sigma, seed=a.seed, margin=a.margin)
-        if a.json:
-            write_atomic(a.json, json.dumps(out))
-        return
+    ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
+    studies = [  # (chosen, the study): the first chosen runs, its record goes to --json
+        (a.spheres, lambda: spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design,
+                                    beam_offset_mm=a.beam_offset)),
+        (a.round_parts, lambda: round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)),
+        (a.fit_cost, lambda: fit_cost(whole=not a.no_whole, seed=a.seed)),
+        (a.pose_bias, lambda: pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")), a.design)),
+        (a.validate, lambda: validate(a.validate, a.design, tuple((a.models or "neighbours,cells").split(",")),
+                                      dict(a.assume))),
+        (a.combine, lambda: combine(a.combine)),
+        (a.sessions, lambda: sessions(a.design, a.sessions, a.spp, sensors=tuple(a.sensors.split(",")),
+                                      calibration_tolerances=ct, calibration_crosstalk=a.calibration_crosstalk,
+                                      true_focal_mm=a.true_focal, focal_sigma=a.focal_sigma, seed=a.seed,
+                                      margin=a.margin)),
+    ]
+    for chosen, study in studies:
+        if chosen:
+            out = study()
+            if a.json:
+                write_atomic(a.json, json.dumps(out))
+            return
     lenses = ([("design", a.design)] if a.design else []) + [(n, n) for n in a.lenses.split(",") if n]
     out = {}
     for label, spec in lenses:
@@ -562,7 +542,7 @@ def session_summary(sensor: str, r: dict) -> str:
     line = (f"{sensor:9s} {nees.size} sessions | NEES median {np.median(nees):6.2f} mean/6 {np.mean(nees) / 6:5.2f} | "
             f"chi2/dof {np.min(r['chi2_dof']):.2f}-{np.max(r['chi2_dof']):.2f} | p<0.05 "
             f"{np.mean(np.array(r['p_values']) < 0.05):.2f} | Z err {np.median(r['z_translation_error_mm']) * 1e3:.1f} um, "
-            f"{np.median(r['z_rotation_error_deg']) * np.pi / 0.18:.2f} mrad | inside 3 sigma {r['inside_3sigma']:.2f} | "
+            f"{np.radians(np.median(r['z_rotation_error_deg'])) * 1e3:.2f} mrad | inside 3 sigma {r['inside_3sigma']:.2f} | "
             f"failed {len(r['failed'])}")
     est = [(e["lenslet_focal_mm"], e["lenslet_focal_std_mm"], t) for e, t in
            zip(r.get("sensor", []), r.get("lenslet_focal_true_mm", [])) if e]
@@ -580,21 +560,19 @@ def combine(paths) -> dict:
     merged = {}
     for path in paths:
         for sensor, r in load_sessions(path).items():
-            m = merged.setdefault(sensor, {"_n": 0})
-            n = len(r["nees"])
+            m = merged.setdefault(sensor, {})
+            n0, n = len(m.get("nees", [])), len(r["nees"])
             dup = set(m.get("seeds", [])) & set(r["seeds"])
             if dup:
                 raise ConfigError(f"{path}: sensor {sensor!r} seeds {sorted(dup)} already read from another file; "
                                   "combine each session once")
             for key in ("inside_3sigma", "inside_3sigma_each_axis"):
-                m[key] = (m.get(key, 0.0) * m["_n"] + r[key] * n) / max(m["_n"] + n, 1)
+                m[key] = (m.get(key, 0.0) * n0 + r[key] * n) / (n0 + n)
             for key, v in r.items():
                 if isinstance(v, list):
                     m.setdefault(key, []).extend(v)
             m["seconds"] = m.get("seconds", 0.0) + r.get("seconds", 0.0)
-            m["_n"] += n
     for sensor, m in merged.items():
-        del m["_n"]
         print(session_summary(sensor, m), flush=True)
     if {"model", "physical"} <= merged.keys():  # the issue's yardstick: physical Z error / own-model Z error
         common = sorted(set(merged["model"]["seeds"]) & set(merged["physical"]["seeds"]))

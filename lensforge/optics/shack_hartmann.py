@@ -234,14 +234,17 @@ class ForwardModel:
         The lens (mm).
     validate : bool
         Check the lens first (LensGeometryError when it is not physical).
+    quadrature : (offsets (q, 2) in pitches, weights (q,) summing to 1), optional
+        The centroid's rule over each lenslet (default ``quadrature_rule`` of
+        ``sensor.subaperture_quadrature`` over the square; a diagnostic may give another aperture's).
     """
 
-    def __init__(self, bench: Bench, lens: Lens, validate: bool = True):
+    def __init__(self, bench: Bench, lens: Lens, validate: bool = True, quadrature=None):
         self.bench = bench
         self.lens = lens.validate() if validate else lens
         self.kernel = lens_kernel(lens, bench.laser.wavelength_nm)
         self.pupil = lenslet_pupil(bench.sensor)
-        off, w = quadrature_rule(bench.sensor.subaperture_quadrature)
+        off, w = quadrature_rule(bench.sensor.subaperture_quadrature) if quadrature is None else quadrature
         self.quad_offsets, self.quad_weights = off, w
         self.window_gain = window_gain(bench.sensor, bench.laser.wavelength_nm)
         # the traced lenslets: the pupil's, and with the 'cells' cross-talk model every lenslet lit within its
