@@ -17,6 +17,9 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      ... --cost: S(p) with and without the cross-talk model, one physical pose
      ... --fit-cost [--no-whole]: one pose estimate on 'cells', the frozen cross-talk correction against the
          trust region on the whole model (time, difference in sigma)
+     ... --cut-scan [--lenses polynomial] [--poses 1] [--cuts 0.03,0.04,...] [--cut-ref 0.05]: the noise cut's effect,
+         physical reference and 'cells' at each cut, in sigma against the same sensor at --cut-ref (is the cut a
+         smooth nuisance a fit could estimate?)
      ... --spheres [--design D] [--radii 1e9,100,-100] [--beam-offset 0,3]: analytic spherical waves (R = +-20
          ... 100 mm, uniform and Gaussian beam, optionally off-centre) through the physical reference against the
          fast models, no lens (what the cross-talk kernel misses, isolated)
@@ -300,6 +303,33 @@ def fit_cost(lens_name: str = "polynomial", whole: bool = True, seed: int = 0) -
     return out
 
 
+def cut_scan(lens_name: str = "polynomial", n_poses: int = 1, cuts=(0.03, 0.04, 0.045, 0.049, 0.051, 0.055, 0.06),
+             cut_ref: float = 0.05, spp: int = 4, margin: int = 5) -> dict:
+    """The noise cut's effect on the reported Zernikes: at nominal and the plan's most extreme poses, the physical
+    reference and 'cells' at each cut c minus the same sensor at cut_ref, per mode in sigma of lensforge's own noise
+    ('cells' with its windows frozen at cut_ref's: the cut alone), and 'cells' - physical at each cut."""
+    lens, bench = load_design_lens(lens_name)
+    poses = extreme_poses(lens, bench, n_poses)
+    ref_bench = bench.replace(sensor={"crosstalk": "cells", "centroid_threshold": cut_ref})
+    ref_model = ForwardModel(ref_bench, lens)
+    sig = np.sqrt(np.diag(ref_model.noise_cov))
+    ref = ref_model.evaluate(poses, check_range=False)
+    rows = []
+    for i, x in enumerate(poses):
+        phys_ref = physical_measure(ref_model, x, PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)).z
+        for c in cuts:
+            model = ForwardModel(ref_bench.replace(sensor={"centroid_threshold": c}), lens)
+            zc = model.evaluate(x[None], check_range=False, windows=ref.windows[i:i + 1]).z[0]
+            zp = physical_measure(model, x, PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)).z
+            row = {"pose": i, "cut": c, "physical_sigma": ((zp - phys_ref) / sig).tolist(),
+                   "cells_sigma": ((zc - ref.z[i]) / sig).tolist(), "cells_minus_physical_sigma": ((zc - zp) / sig).tolist()}
+            rows.append(row)
+            print(f"pose {i} cut {c:.4f}: physical {_worst(np.array(row['physical_sigma']), ref_model.modes)} "
+                  f"cells {_worst(np.array(row['cells_sigma']), ref_model.modes)} "
+                  f"cells - physical {_worst(np.array(row['cells_minus_physical_sigma']), ref_model.modes)}", flush=True)
+    return {"modes": ref_model.modes.tolist(), "cut_ref": cut_ref, "rows": rows}
+
+
 def _disc_rule(diameter_rel: float, n_r: int = 4, n_t: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(offsets (n_r n_t, 2) in pitches, weights summing to 1): a polar rule over a centred disc of diameter
     diameter_rel pitches, Gauss-Legendre in r^2 (uniform in area) and the midpoint rule in angle."""
@@ -455,6 +485,11 @@ def main(argv=None):
     ap.add_argument("--fit-cost", action="store_true", help="time one pose estimate on 'cells': frozen cross-talk "
                     "correction against the whole model (--no-whole: the frozen one only)")
     ap.add_argument("--no-whole", action="store_true", help="--fit-cost: skip the whole model's (slow) fit")
+    ap.add_argument("--cut-scan", action="store_true", help="the noise cut's effect over --cuts against --cut-ref, "
+                    "physical and 'cells' (first of --lenses, --poses)")
+    ap.add_argument("--cuts", type=_floats(), default=(0.03, 0.04, 0.045, 0.049, 0.051, 0.055, 0.06),
+                    help="--cut-scan: the cuts (fractions of the spot peak)")
+    ap.add_argument("--cut-ref", type=float, default=0.05, help="--cut-scan: the reference cut")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     ap.add_argument("--radii", type=_floats(), default=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), help="--spheres: the waves' radii, mm (a huge one: "
                     "a plane wave)")
@@ -463,6 +498,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
+    if a.cut_scan and not all(0 <= c < 1 for c in (*a.cuts, a.cut_ref)):
+        ap.error("--cuts/--cut-ref: a noise cut is a fraction of the spot peak, 0 <= cut < 1")
     if a.spheres and any(r == 0 for r in a.radii):
         ap.error("--radii: a radius of 0 is no wave (a huge one is a plane wave)")
     if a.cost:
@@ -472,6 +509,7 @@ def main(argv=None):
     studies = [  # (chosen, the study): the first chosen runs, its record goes to --json
         (a.spheres, lambda: spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design,
                                     beam_offset_mm=a.beam_offset)),
+        (a.cut_scan, lambda: cut_scan(a.lenses.split(",")[0], a.poses, a.cuts, a.cut_ref, a.spp, a.margin)),
         (a.round_parts, lambda: round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)),
         (a.fit_cost, lambda: fit_cost(whole=not a.no_whole, seed=a.seed)),
         (a.pose_bias, lambda: pose_bias(a.pose_bias, tuple((a.models or "none,cells").split(",")), a.design)),
