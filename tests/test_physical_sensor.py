@@ -240,13 +240,13 @@ def test_session_study_runs_combine(tmp_path):
 
 @pytest.mark.slow
 def test_physical_sessions_calibrate_honestly():
-    # measured one seed at a time (`bench_sensor_physics.py --design polynomial --sessions 1 --seed S --sensors
-    # physical --calibration-crosstalk cells --calibration-tolerances none`, the same plan and seeds as here), with
-    # the exact covariance: seeds 0-6 gave NEES 2.0-13.8 (mean / 6 1.07), chi2/dof 0.72-1.20 (none p < 0.05), Z
-    # inside 3 sigma in 7 of 7 (45-56 min a session on a shared core; seeds 7-9 not yet run)
     # >= 10 sessions of 12 poses measured by the full-array sensor (4 samples per pixel, 5 lit rings), calibrated
-    # with the lens known on the 'cells' model: mean NEES / 6 in [0.6, 1.6] and chi2 passing at its nominal rate
-    # (~10 min a session on one core; the 'neighbours' model gave NEES / 6 5.2 and chi2/dof 3.5-7.6)
+    # with the lens known on the 'cells' model: mean NEES / 6 in [0.6, 1.6] and chi2 passing at its nominal rate.
+    # Measured one seed a run (`bench_sensor_physics.py --design polynomial --sessions 1 --seed S --sensors physical
+    # --calibration-crosstalk cells --calibration-tolerances none --json S.json`, the same plan, seeds and sensor
+    # settings as here, merged by `--combine`), seeds 0-9 with the exact covariance: NEES 2.0-13.8 (mean / 6 1.18),
+    # chi2/dof 0.72-1.20 (none p < 0.05), Z inside 3 sigma in 10 of 10 (42-61 min a session, two or three runs
+    # sharing two cores; the 'neighbours' model gave NEES / 6 5.2 and chi2/dof 3.5-7.6)
     from lensforge.calibration.session import load_design_lens
     from lensforge.verification.session_sim import check_sessions
 
