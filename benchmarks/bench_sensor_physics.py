@@ -20,9 +20,9 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      ... --cut-scan [--lenses polynomial] [--poses 1] [--cuts 0.03,0.04,...] [--cut-ref 0.05]: the noise cut's effect,
          physical reference and 'cells' at each cut, in sigma against the same sensor at --cut-ref (is the cut a
          smooth nuisance a fit could estimate?)
-     ... --estimate-mc N [--pupil 0.5] [--seed 0]: pose estimates of N noisy draws measured by 'cells' at one pose (small
-         pupil: 'cells' costs seconds a pose), by the 'cells' estimator and the own-centroid one: RMSE / CRLB per DOF,
-         NEES, bias (the estimate study, old against new)
+     ... --estimate-mc N [--pupil 0.5] [--zernike-order 3] [--seed 0]: pose estimates of N noisy draws measured by
+         'cells' at one pose (by default a small pupil: 'cells' costs seconds a pose), by the 'cells' estimator and
+         the own-centroid one: RMSE / CRLB per DOF, NEES, bias (the estimate study, old against new)
      ... --spheres [--design D] [--radii 1e9,100,-100] [--beam-offset 0,3]: analytic spherical waves (R = +-20
          ... 100 mm, uniform and Gaussian beam, optionally off-centre) through the physical reference against the
          fast models, no lens (what the cross-talk kernel misses, isolated)
@@ -325,23 +325,26 @@ def cut_scan(lens_name: str = "polynomial", n_poses: int = 1, cuts=(0.03, 0.04, 
             zc = model.evaluate(x[None], check_range=False, windows=ref.windows[i:i + 1]).z[0]
             zp = physical_measure(model, x, PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)).z
             row = {"pose": i, "cut": c, "physical_sigma": ((zp - phys_ref) / sig).tolist(),
-                   "cells_sigma": ((zc - ref.z[i]) / sig).tolist(), "cells_minus_physical_sigma": ((zc - zp) / sig).tolist()}
+                   "cells_sigma": ((zc - ref.z[i]) / sig).tolist(),
+                   "cells_minus_physical_sigma": ((zc - zp) / sig).tolist()}
             rows.append(row)
             print(f"pose {i} cut {c:.4f}: physical {_worst(np.array(row['physical_sigma']), ref_model.modes)} "
                   f"cells {_worst(np.array(row['cells_sigma']), ref_model.modes)} "
-                  f"cells - physical {_worst(np.array(row['cells_minus_physical_sigma']), ref_model.modes)}", flush=True)
+                  f"cells - physical {_worst(np.array(row['cells_minus_physical_sigma']), ref_model.modes)}",
+                  flush=True)
     return {"modes": ref_model.modes.tolist(), "cut_ref": cut_ref, "rows": rows}
 
 
-def estimate_mc(n_draws: int = 24, pupil_mm: float = 0.5, seed: int = 0) -> dict:
+def estimate_mc(n_draws: int = 24, pupil_mm: float = 0.5, seed: int = 0, order: int = 3) -> dict:
     """Monte Carlo of the pose estimate on data the 'cells' model measures (the paper polynomial lens, a pupil of
-    radius pupil_mm, Zernike order 3, one pose 0.5 mm / 1.7 deg off nominal, n_draws noise draws of the bench's
+    radius pupil_mm, Zernike order ``order``, one pose 0.5 mm / 1.7 deg off nominal, n_draws noise draws of the bench's
     Zernike covariance), estimated with the 'cells' model (new) and the own-centroid model (old) from a start
     beyond the noise: per DOF the RMSE over the CRLB (the exact 'cells' Jacobian's at the truth), the mean error
     over the CRLB, and the mean NEES with each estimator's reported covariance (6 expected)."""
     from lensforge.calibration.pose_estimation import estimate_poses_batch
 
-    bench = lf.Bench.default().replace(sensor={"crosstalk": "cells", "pupil_radius_mm": pupil_mm, "zernike_order": 3})
+    bench = lf.Bench.default().replace(sensor={"crosstalk": "cells", "pupil_radius_mm": pupil_mm,
+                                               "zernike_order": order})
     lens = lf.paper_lens("polynomial")
     cells = ForwardModel(bench, lens)
     own = ForwardModel(bench.replace(sensor={"crosstalk": "none"}), lens)
@@ -353,7 +356,8 @@ def estimate_mc(n_draws: int = 24, pupil_mm: float = 0.5, seed: int = 0) -> dict
     J = cells.jacobians(x_true[None], exact=True)[0][0]
     Jw = cells.whitener @ J
     crlb = np.sqrt(np.diag(np.linalg.inv(Jw.T @ Jw)))
-    out = {"crlb": crlb.tolist(), "n_draws": n_draws, "pupil_mm": pupil_mm}
+    out = {"crlb": crlb.tolist(), "n_draws": n_draws, "pupil_mm": pupil_mm, "zernike_order": order,
+           "information_condition": float(np.linalg.cond(Jw.T @ Jw))}
     for name, model in (("cells", cells), ("own", own)):
         t0 = time.perf_counter()
         est = estimate_poses_batch(model, z, x0)
@@ -535,6 +539,7 @@ def main(argv=None):
     ap.add_argument("--estimate-mc", type=int, default=0, metavar="N",
                     help="Monte Carlo of N pose estimates on 'cells' data: 'cells' against the own-centroid estimator")
     ap.add_argument("--pupil", type=float, default=0.5, help="--estimate-mc: the pupil radius, mm")
+    ap.add_argument("--zernike-order", type=int, default=3, help="--estimate-mc: the Zernike order (the bench's: 4)")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     ap.add_argument("--radii", type=_floats(), default=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), help="--spheres: the waves' radii, mm (a huge one: "
                     "a plane wave)")
@@ -543,8 +548,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
-    if a.estimate_mc < 0 or not 0 < a.pupil <= 5.0:
-        ap.error("--estimate-mc: a number of draws >= 1; --pupil: a radius in (0, 5] mm")
+    if a.estimate_mc < 0 or not 0 < a.pupil <= 5.0 or not 1 <= a.zernike_order <= 10:
+        ap.error("--estimate-mc: a number of draws >= 1; --pupil: a radius in (0, 5] mm; --zernike-order: 1 to 10")
     if a.cut_scan and not all(0 <= c < 1 for c in (*a.cuts, a.cut_ref)):
         ap.error("--cuts/--cut-ref: a noise cut is a fraction of the spot peak, 0 <= cut < 1")
     if a.spheres and any(r == 0 for r in a.radii):
@@ -556,7 +561,7 @@ def main(argv=None):
     studies = [  # (chosen, the study): the first chosen runs, its record goes to --json
         (a.spheres, lambda: spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design,
                                     beam_offset_mm=a.beam_offset)),
-        (a.estimate_mc, lambda: estimate_mc(a.estimate_mc, a.pupil, a.seed)),
+        (a.estimate_mc, lambda: estimate_mc(a.estimate_mc, a.pupil, a.seed, a.zernike_order)),
         (a.cut_scan, lambda: cut_scan(a.lenses.split(",")[0], a.poses, a.cuts, a.cut_ref, a.spp, a.margin)),
         (a.round_parts, lambda: round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)),
         (a.fit_cost, lambda: fit_cost(whole=not a.no_whole, seed=a.seed)),

@@ -238,7 +238,8 @@ def test_session_study_runs_combine(tmp_path):
         assert r.returncode == 2 and "--assume" in r.stderr, (wrong, r.stderr)
     # --cut-scan's cuts are fractions of the spot peak; --estimate-mc's draws and pupil positive
     for wrong, name in ((["--cut-scan", "--cuts", "0.1,nan"], "--cuts"), (["--cut-scan", "--cut-ref", "1.5"], "--cut-ref"),
-                        (["--estimate-mc", "-1"], "--estimate-mc"), (["--estimate-mc", "3", "--pupil", "0"], "--pupil")):
+                        (["--estimate-mc", "-1"], "--estimate-mc"), (["--estimate-mc", "3", "--pupil", "0"], "--pupil"),
+                        (["--estimate-mc", "3", "--zernike-order", "0"], "--zernike-order")):
         r = subprocess.run(script[:-1] + wrong, capture_output=True, text=True)
         assert r.returncode == 2 and name in r.stderr, (wrong, r.stderr)
 
