@@ -317,21 +317,20 @@ def cut_scan(lens_name: str = "polynomial", n_poses: int = 1, cuts=(0.03, 0.04, 
     ref_model = ForwardModel(ref_bench, lens)
     sig = np.sqrt(np.diag(ref_model.noise_cov))
     ref = ref_model.evaluate(poses, check_range=False)
+    cfg = PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)  # takes each model's cut
+    models = {c: ForwardModel(ref_bench.replace(sensor={"centroid_threshold": c}), lens) for c in cuts}
     rows = []
     for i, x in enumerate(poses):
-        phys_ref = physical_measure(ref_model, x, PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)).z
-        for c in cuts:
-            model = ForwardModel(ref_bench.replace(sensor={"centroid_threshold": c}), lens)
+        phys_ref = physical_measure(ref_model, x, cfg).z
+        for c, model in models.items():
             zc = model.evaluate(x[None], check_range=False, windows=ref.windows[i:i + 1]).z[0]
-            zp = physical_measure(model, x, PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)).z
-            row = {"pose": i, "cut": c, "physical_sigma": ((zp - phys_ref) / sig).tolist(),
-                   "cells_sigma": ((zc - ref.z[i]) / sig).tolist(),
-                   "cells_minus_physical_sigma": ((zc - zp) / sig).tolist()}
-            rows.append(row)
-            print(f"pose {i} cut {c:.4f}: physical {_worst(np.array(row['physical_sigma']), ref_model.modes)} "
-                  f"cells {_worst(np.array(row['cells_sigma']), ref_model.modes)} "
-                  f"cells - physical {_worst(np.array(row['cells_minus_physical_sigma']), ref_model.modes)}",
-                  flush=True)
+            zp = physical_measure(model, x, cfg).z
+            d = {"physical_sigma": (zp - phys_ref) / sig, "cells_sigma": (zc - ref.z[i]) / sig,
+                 "cells_minus_physical_sigma": (zc - zp) / sig}
+            rows.append({"pose": i, "cut": c, **{k: v.tolist() for k, v in d.items()}})
+            print(f"pose {i} cut {c:.4f}: physical {_worst(d['physical_sigma'], ref_model.modes)} "
+                  f"cells {_worst(d['cells_sigma'], ref_model.modes)} "
+                  f"cells - physical {_worst(d['cells_minus_physical_sigma'], ref_model.modes)}", flush=True)
     return {"modes": ref_model.modes.tolist(), "cut_ref": cut_ref, "rows": rows}
 
 
@@ -340,8 +339,10 @@ def estimate_mc(n_draws: int = 24, pupil_mm: float = 0.5, seed: int = 0, order: 
     radius pupil_mm, Zernike order ``order``, one pose 0.5 mm / 1.7 deg off nominal, n_draws noise draws of the bench's
     Zernike covariance), estimated with the 'cells' model (new) and the own-centroid model (old) from a start
     beyond the noise: per DOF the RMSE over the CRLB (the exact 'cells' Jacobian's at the truth), the mean error
-    over the CRLB, and the mean NEES with each estimator's reported covariance (6 expected)."""
+    over the CRLB, and the NEES with each estimator's reported covariance (6 expected); the RMSE / CRLB and mean
+    NEES are the estimate study's (``LensStudy.summary``)."""
     from lensforge.calibration.pose_estimation import estimate_poses_batch
+    from lensforge.verification.estimation_study import NOT_CONVERGED, OK, LensStudy
 
     bench = lf.Bench.default().replace(sensor={"crosstalk": "cells", "pupil_radius_mm": pupil_mm,
                                                "zernike_order": order})
@@ -353,21 +354,30 @@ def estimate_mc(n_draws: int = 24, pupil_mm: float = 0.5, seed: int = 0, order: 
     clean = cells.evaluate(x_true[None], check_range=False).z[0]
     z = clean + rng.standard_normal((n_draws, clean.size)) @ np.linalg.cholesky(cells.noise_cov).T
     x0 = np.tile(x_true + np.array([0.1, -0.08, 0.2, 4e-3, -3e-3, 8e-3]), (n_draws, 1))
-    J = cells.jacobians(x_true[None], exact=True)[0][0]
-    Jw = cells.whitener @ J
-    crlb = np.sqrt(np.diag(np.linalg.inv(Jw.T @ Jw)))
+    Jw = cells.whitener @ cells.jacobians(x_true[None], exact=True)[0][0]
+    info = Jw.T @ Jw
+    crlb = np.sqrt(np.diag(np.linalg.inv(info)))
     out = {"crlb": crlb.tolist(), "n_draws": n_draws, "pupil_mm": pupil_mm, "zernike_order": order,
-           "information_condition": float(np.linalg.cond(Jw.T @ Jw))}
+           "information_condition": float(np.linalg.cond(info))}
+    truth = np.tile(x_true, (n_draws, 1))
     for name, model in (("cells", cells), ("own", own)):
         t0 = time.perf_counter()
         est = estimate_poses_batch(model, z, x0)
         e = est.poses - x_true
         ok = np.asarray(est.converged, bool)
-        nees = np.einsum("pi,pij,pj->p", e[ok], np.linalg.inv(est.cov[ok]), e[ok])
-        r = {"converged": int(ok.sum()), "rmse_over_crlb": (np.sqrt(np.mean(e[ok] ** 2, axis=0)) / crlb).tolist(),
-             "bias_over_crlb": (np.mean(e[ok], axis=0) / crlb).tolist(), "nees_mean": float(np.mean(nees)),
+        study = LensStudy(name=name, method="lm", errors=np.where(ok[:, None], e, np.nan), true_poses=truth,
+                          status=np.where(ok, OK, NOT_CONVERGED),
+                          reported_std=np.sqrt(np.clip(np.diagonal(est.cov, 0, 1, 2), 0.0, None)),
+                          crlb_var=np.tile(crlb ** 2, (n_draws, 1)), chi2=np.asarray(est.chi2, float),
+                          nees=est.nees(truth), n_evals=np.full(n_draws, est.n_evals / n_draws), dof=clean.size - 6,
+                          seconds=time.perf_counter() - t0)
+        summary = study.summary()
+        nees = study.nees[ok]
+        r = {"converged": int(ok.sum()), "rmse_over_crlb": list(summary["rmse_over_crlb"].values()),
+             "bias_over_crlb": (np.mean(e[ok], axis=0) / crlb).tolist(),
+             "nees_mean": summary["mean_nees_per_dof"] * int(study.observable.sum()),
              "nees": nees.tolist(), "error_over_crlb": (e / crlb).tolist(), "status": list(map(str, est.status)),
-             "chi2": np.asarray(est.chi2).tolist(), "seconds": time.perf_counter() - t0}
+             "chi2": study.chi2.tolist(), "seconds": study.seconds}
         out[name] = r
         print(f"{name:5s} estimator, {ok.sum()}/{n_draws} converged: RMSE/CRLB "
               f"{np.round(r['rmse_over_crlb'], 2).tolist()} | bias/CRLB {np.round(r['bias_over_crlb'], 2).tolist()} | "

@@ -77,7 +77,15 @@ from .initial_poses import prior_covariance
 from .trust_region import SHRINK_BELOW, eigen_step, gain_ratio, next_radius, predicted_decrease
 
 __all__ = ["PoseEstimate", "BatchPoseEstimate", "UnobservableWarning", "WeakObservabilityWarning", "estimate_pose",
-           "estimate_pose_model", "estimate_poses_batch", "ESTIMATORS", "METHODS", "STOP_REASONS"]
+           "estimate_pose_model", "estimate_poses_batch", "normalised_error_squared", "ESTIMATORS", "METHODS",
+           "STOP_REASONS"]
+
+
+def normalised_error_squared(error: np.ndarray, cov: np.ndarray) -> float:
+    """NEES e^T cov^-1 e of a pose error (6,) over the DOF the covariance (6, 6) observes (finite variance);
+    ~ chi-square with that many DOF for an honest covariance."""
+    obs = np.isfinite(np.diag(cov))
+    return float(error[obs] @ np.linalg.solve(cov[np.ix_(obs, obs)], error[obs]))
 
 
 class UnobservableWarning(UserWarning):
@@ -112,6 +120,11 @@ class BatchPoseEstimate:
     observable: np.ndarray = None
     status: np.ndarray = None
     n_iter: np.ndarray = None
+
+    def nees(self, true_poses) -> np.ndarray:
+        """(P,) NEES of each estimate against true_poses (P, 6) (``normalised_error_squared``)."""
+        errors = self.poses - np.asarray(true_poses, dtype=float)
+        return np.array([normalised_error_squared(e, c) for e, c in zip(errors, self.cov)])
 
 
 # why a pose's iteration stopped (BatchPoseEstimate.status)
@@ -565,10 +578,7 @@ class PoseEstimate:
     def nees(self, true_pose) -> float:
         """Normalised estimation error squared (e^T cov^-1 e) over the observable
         DOF; ~ chi-square with that many DOF for an honest covariance."""
-        e = self.pose - np.asarray(true_pose, dtype=float)
-        obs = np.isfinite(np.diag(self.cov))
-        c = self.cov[np.ix_(obs, obs)]
-        return float(e[obs] @ np.linalg.solve(c, e[obs]))
+        return normalised_error_squared(self.pose - np.asarray(true_pose, dtype=float), self.cov)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (inf -> None); units in the keys."""
