@@ -393,11 +393,11 @@ def test_frozen_crosstalk_fit_is_the_whole_model_fit(small_cells_model):
     assert np.all(np.abs(fast.poses - whole.poses) < 1e-2 * sig), (fast.poses - whole.poses) / sig
     np.testing.assert_allclose(fast.cov, whole.cov, rtol=0, atol=2e-2 * np.abs(whole.cov).max())
     np.testing.assert_allclose(fast.chi2, whole.chi2, rtol=1e-4)
-    # the covariance is the exact Jacobian's at the estimate, not the iteration Jacobian's (the own centroid's,
-    # 9 % off on this small pupil; the trust region reported it until it finished on exact ones)
     # the chi2 reported is the objective's at the estimate, with the windows the tracking rule places there
     r = model.whitener @ (model.evaluate(fast.poses, check_range=False).z - z).T
     np.testing.assert_allclose(fast.chi2, np.sum(r * r, axis=0), rtol=1e-9)
+    # the covariance is the exact Jacobian's at the estimate, not the iteration Jacobian's (the own centroid's,
+    # 9 % off on this small pupil; the trust region reported it until it finished on exact ones)
     J = model.jacobians(fast.poses, exact=True)[0]
     Jw = np.einsum("mk,pkj->pmj", model.whitener, J)
     np.testing.assert_allclose(fast.cov, np.linalg.inv(np.einsum("pmi,pmj->pij", Jw, Jw)), rtol=1e-2,

@@ -344,8 +344,8 @@ def _polish(model: ForwardModel, Z: np.ndarray, x: np.ndarray, s: np.ndarray, uv
     is chi2(x, windows(x)), and a pass's minimum with windows the rule does not give at it is not a value of it.
     (Comparing the passes' frozen-window minima instead picked windows of no pose, and a pose 3 CRLB off the
     truth: on the polynomial lens's 0.9 mm pupil, chi2 8.0 with them, 49.9 with its own windows, 12.7 at the
-    truth; NEES median 10.1 over 12 draws.) Fills x, cov, cost and polished (a step below ``POLISH_TOL`` sigma, or a rejected one below 1e-2 sigma, in
-    some pass) in place; returns the poses traced."""
+    truth; NEES median 10.1 over 12 draws.) Fills x, cov, cost and polished (a step below ``POLISH_TOL`` sigma,
+    or a rejected one below 1e-2 sigma, in some pass) in place; returns the poses traced."""
     L, D = model.whitener, np.asarray(model.bench.pose_scales, dtype=float)
     J, _, res = model.jacobians(x[s], uv0=uv, exact=True, windows=ws)
     n_evals = (JACOBIAN_EVALS + 1) * s.size
@@ -366,6 +366,11 @@ def _polish(model: ForwardModel, Z: np.ndarray, x: np.ndarray, s: np.ndarray, uv
     uv, live = res.uv, res.valid.copy()
     ws = None if ws is None else ws.copy()
     best_x, best_cost = x[s].copy(), np.full(s.size, np.inf)
+
+    def objective(new, k):  # (whitened residuals, chi2; inf where unlit) of an evaluation at the poses s[k]
+        rn = _whiten(L, new.z - Z[s[k]])
+        return rn, np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
+
     in_play = np.ones(s.size, bool)  # poses whose windows may still move
     seen = [] if ws is None else [ws.copy()]  # the windows of every pass so far (a pose back at one: a cycle)
     for pas in range(WINDOW_PASSES + 1):
@@ -377,8 +382,7 @@ def _polish(model: ForwardModel, Z: np.ndarray, x: np.ndarray, s: np.ndarray, uv
             xn = x[s[k]] + du * D
             new = model.evaluate(xn, uv0=uv[k], check_range=False, windows=None if ws is None else ws[k])
             n_evals += k.size
-            rn = _whiten(L, new.z - Z[s[k]])
-            cn = np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
+            rn, cn = objective(new, k)
             acc = cn <= cost[s[k]] * (1.0 + 1e-12)
             a = k[acc]
             x[s[a]], cost[s[a]], r[a], uv[a] = xn[acc], cn[acc], rn[acc], new.uv[acc]
@@ -400,8 +404,7 @@ def _polish(model: ForwardModel, Z: np.ndarray, x: np.ndarray, s: np.ndarray, uv
         # there; where they differ from the frozen ones, on with those (chord steps on the same Jacobian)
         new = model.evaluate(x[s[k]], uv0=uv[k], check_range=False)
         n_evals += k.size
-        rn = _whiten(L, new.z - Z[s[k]])
-        cn = np.where(new.valid, np.sum(rn * rn, axis=1), np.inf)
+        rn, cn = objective(new, k)
         better = cn < best_cost[k]
         best_x[k[better]], best_cost[k[better]] = x[s[k[better]]], cn[better]
         moved = np.any(new.windows != ws[k], axis=(1, 2)) & new.valid
@@ -414,8 +417,7 @@ def _polish(model: ForwardModel, Z: np.ndarray, x: np.ndarray, s: np.ndarray, uv
         k = k[moved]
         ws[k], uv[k] = new.windows[moved], new.uv[moved]
         seen.append(ws.copy())
-        r[k] = _whiten(L, new.z[moved] - Z[s[k]])
-        cost[s[k]] = np.sum(r[k] * r[k], axis=1)
+        r[k], cost[s[k]] = rn[moved], cn[moved]
         polished[s[k]], live[k] = False, True
     got = np.isfinite(best_cost)
     x[s[got]], cost[s[got]], polished[s[got]] = best_x[got], best_cost[got], True
