@@ -339,3 +339,24 @@ def test_pose_plan_in_wrong_units_is_refused():
     plan[2, 2] = 500.0  # mm: far outside the bench's +-5 mm
     with pytest.raises(ConfigError, match=r"pose plan: .*exceeds bench.pose_limits.*mm and rad"):
         verify("zernike", Tolerances.zero(), 1, 0, workers=0, progress=False, plan=plan)
+
+
+def test_window_passes_stand_at_the_least_objective():
+    """The joint fit's window passes on a cross-talk model (``joint.WindowPasses``): it goes on while the tracking
+    rule places windows not had before, stops where they are the frozen ones (consistent), come back (a cycle) or
+    the passes run out, and stands at the state of least objective chi2(x, windows(x)), not the last one."""
+    from lensforge.calibration.joint import WindowPasses
+
+    w = [np.full((2, 3, 2), i) for i in range(4)]
+    p = WindowPasses(4)
+    assert not p.settle(w[0], w[0], 5.0, "a") and p.best == "a" and p.best_objective == 5.0
+    p = WindowPasses(4)  # a cycle: the second minimum's windows are the first's; the better point stands
+    assert p.settle(w[0], w[1], 10.0, "a") and not p.settle(w[1], w[0], 8.0, "b") and p.best == "b"
+    p = WindowPasses(4)  # a three-set cycle whose first point is the best
+    assert p.settle(w[0], w[1], 3.0, "a") and p.settle(w[1], w[2], 9.0, "b")
+    assert not p.settle(w[2], w[1], 7.0, "c") and p.best == "a" and p.passes == 2
+    p = WindowPasses(2)  # the limit: every set new, two passes, then the best of the three minima
+    assert p.settle(w[0], w[1], 6.0, "a") and p.settle(w[1], w[2], 4.0, "b")
+    assert not p.settle(w[2], w[3], 5.0, "c") and p.best == "b" and p.best_objective == 4.0
+    p = WindowPasses(4)  # an unlit objective never stands over a lit one
+    assert p.settle(w[0], w[1], np.inf, "a") and not p.settle(w[1], w[1], 2.0, "b") and p.best == "b"

@@ -64,7 +64,7 @@ from ..asbuilt.joint_information import chain_jacobians  # the chain's derivativ
 from ..asbuilt.lens_params import LensParameterisation
 from .trust_region import damped_step, gain_ratio, next_radius, predicted_decrease
 
-__all__ = ["JointCalibrationResult", "JointProblem", "joint_calibrate", "joint_information", "pose_chain",
+__all__ = ["JointCalibrationResult", "JointProblem", "WindowPasses", "joint_calibrate", "joint_information", "pose_chain",
            "simulate_joint_data"]
 
 # relinearise the iteration Jacobians when a step is not at least this much smaller than the one before
@@ -92,6 +92,35 @@ def sensor_gain(theta, k_lens: int, gain_sigma: float) -> float:
     """The sensor gain g = 1 + gain_sigma s of a joint state theta = (lens (k_lens), s) (1
     without the gain parameter, gain_sigma = 0)."""
     return 1.0 + gain_sigma * float(theta[k_lens]) if gain_sigma > 0 else 1.0
+
+
+class WindowPasses:
+    """The window passes of a fit on a cross-talk model, whose centroid windows are frozen within a fit and
+    placed again by the tracking rule at its minimum. A spot within the window's truncation bias of a half-pixel
+    boundary has two stable windows, so the rule may put the next minimum's windows back where they were: the
+    passes cycle and no window set is its own minimum's. The objective is chi2(x, windows(x)); a pass's minimum
+    with windows the rule does not place there is not a value of it (``pose_estimation._polish`` compares its
+    passes the same way). ``settle`` records each pass; the fit goes on while the windows are new and the passes
+    last, then stands at ``best``, the state of least objective seen."""
+
+    def __init__(self, limit: int):
+        self.limit = int(limit)
+        self.seen: list = []  # the window sets minimised with so far
+        self.best = None  # the state of least objective seen
+        self.best_objective = np.inf
+        self.passes = 0
+
+    def settle(self, frozen, placed, objective: float, state) -> bool:
+        """A minimum found with the windows ``frozen``, where the rule places ``placed`` and the objective is
+        ``objective`` (``state``: whatever the caller restores). True: go on with ``placed`` (a set not had
+        before, within the limit); False: stop at ``best``."""
+        if self.best is None or objective < self.best_objective:
+            self.best, self.best_objective = state, float(objective)
+        self.seen.append(np.asarray(frozen))
+        if self.passes >= self.limit or any(np.array_equal(placed, w) for w in self.seen):
+            return False
+        self.passes += 1
+        return True
 
 
 @dataclass(frozen=True, eq=False)
@@ -413,19 +442,28 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
     else:
         S, Jt = pb.jacobians(theta, x, uv, exact=False)
     fresh = False
-    window_passes = 0
+    passes = WindowPasses(_WINDOW_PASSES)
 
     def moved_windows() -> bool:
-        # at a minimum with frozen windows: do the estimate's spots put them elsewhere? Then the fit goes on
-        # with those (and their residuals), at most _WINDOW_PASSES times (a spot on a half pixel may flip back and forth)
-        nonlocal window_passes, r, lit, B, x, uv, zm, cost
-        if pb.windows is None or window_passes >= _WINDOW_PASSES:
+        # at a minimum with frozen windows: do the estimate's spots put them elsewhere? Then the fit goes on with
+        # those (and their residuals), up to _WINDOW_PASSES times and until the windows come back to a set it has
+        # had (a spot on a half pixel may flip back and forth); it then stands at the best point seen by the
+        # objective, chi2 with the windows the rule places there (WindowPasses)
+        nonlocal r, lit, B, x, uv, zm, cost, X, Z, theta, a, fresh
+        if pb.windows is None:
             return False
-        window_passes += 1
-        before = pb.windows
-        r, lit, B, x, uv, zm = pb.residuals(X, Z, theta, a, uv0=uv, place_windows=True)
-        cost = pb.cost(r, a, theta)
-        return not np.array_equal(before, pb.windows)
+        frozen = pb.windows
+        placed = pb.residuals(X, Z, theta, a, uv0=uv, place_windows=True)
+        objective = pb.cost(placed[0], a, theta) if placed[1].all() else np.inf
+        state = (X, Z, theta, a, *placed, pb.windows)
+        if passes.settle(frozen, pb.windows, objective, state):
+            (r, lit, B, x, uv, zm), cost = placed, objective
+            return True
+        best, cost = passes.best, passes.best_objective
+        X, Z, theta, a, r, lit, B, x, uv, zm, pb.windows = best
+        # the Jacobians are the covariance's only at the point and windows they were taken with
+        fresh = fresh and best is state and np.array_equal(frozen, pb.windows)
+        return False
 
     dof = n * pb.m - 12 - (0 if theta_prior else k)
     radius, lam = None, 0.0  # trust radius, conditional 1-sigma units (None: the next Gauss-Newton step's length)
@@ -493,6 +531,7 @@ def joint_calibrate(bench, param: LensParameterisation, z, A, T_SO_nominal, X0, 
                 dof = n * pb.m - 12 - (0 if theta_prior else k)
                 cost, litn = pb.cost(r, a, theta), np.ones(n, bool)
                 fresh, prev_dec, dropped = False, np.inf, True
+                passes = WindowPasses(_WINDOW_PASSES - passes.passes)  # its states had the dropped poses
             cn = pb.cost(rn, an, thn) if litn.all() else np.inf
             acc = cn <= cost
             # the shared step policy (trust_region); after dropping poses the model's prediction
