@@ -360,3 +360,36 @@ def test_window_passes_stand_at_the_least_objective():
     assert not p.settle(w[2], w[3], 5.0, "c") and p.best == "b" and p.best_objective == 4.0
     p = WindowPasses(4)  # an unlit objective never stands over a lit one
     assert p.settle(w[0], w[1], np.inf, "a") and not p.settle(w[1], w[1], 2.0, "b") and p.best == "b"
+
+
+@pytest.mark.slow
+def test_joint_fit_on_the_cells_model_reports_its_objective(polynomial_joint_setup):
+    """The joint fit on the 'cells' cross-talk model (windows frozen within a fit, placed again by the tracking
+    rule at its minimum; the focal-length gain estimated, lens known): the reported chi2 is the objective at the
+    reported state, chi2 with the windows the rule places there, the fit is not worse than the truth, and the
+    gain and Z are within their reported sigmas. A small pupil (0.5 mm, order 3) and four poses of the plan keep
+    it to minutes."""
+    from lensforge.calibration.joint import JointProblem
+
+    bench0, lens, scene, plan = polynomial_joint_setup
+    bench = bench0.replace(sensor={"crosstalk": "cells", "pupil_radius_mm": 0.5, "zernike_order": 3})
+    plan = plan[[0, 3, 6, 9]]
+    param = parameterise(bench, lens, TOL, plan, as_designed=True)
+    rng = np.random.default_rng(5)
+    A_cmd = flange_pose(scene, plan, check_reach=False)
+    a_true = scene.noise.sample(rng, len(A_cmd))
+    g, gs = 1.012, 0.01
+    z = g * simulate_joint_data(bench, param, np.zeros(0), A_cmd @ pose_to_matrix(a_true), scene.X, scene.Z,
+                                scene.T_SO_nominal, rng=rng)
+    X0 = scene.X @ pose_to_matrix([0.03, -0.02, 0.04, 5e-4, -4e-4, 6e-4])
+    Z0 = scene.Z @ pose_to_matrix([-0.04, 0.03, 0.02, -5e-4, 3e-4, 4e-4])
+    res = joint_calibrate(bench, param, z, A_cmd, scene.T_SO_nominal, X0, Z0, scene.noise.cov, gain_sigma=gs)
+    assert res.converged and res.used.all()
+    pb = JointProblem(bench, param, z, A_cmd, scene.T_SO_nominal, scene.noise.cov, True, gain_sigma=gs)
+    r, lit, *_ = pb.residuals(res.X, res.Z, res.theta, res.robot_errors, place_windows=True)
+    assert lit.all() and res.chi2 == pytest.approx(pb.cost(r, res.robot_errors, res.theta), rel=1e-9)
+    r, *_ = pb.residuals(scene.X, scene.Z, np.array([(g - 1) / gs]), a_true, place_windows=True)
+    assert res.chi2 <= pb.cost(r, a_true, np.array([(g - 1) / gs]))  # the minimum, not a frozen-window one
+    assert abs(res.sensor_gain - g) < 4 * res.sensor_gain_std
+    e = pose_error(scene.Z, res.Z)
+    assert e @ np.linalg.solve(res.cov_Z, e) < 22.5  # chi2_6's 99.9th percentile
