@@ -43,6 +43,7 @@ from .measurement import Measurement, canonical_ids, slope_inputs, spot_bench
 from .joint_design import candidate_information, design_joint_poses, predicted_joint_uncertainty
 from .pipeline import METHODS, estimate_one, run
 from .pose_design import candidate_poses, z_translation_std
+from .pose_linearity import linearity_check
 from .plausibility import (check_job_memory, check_poses_count, check_robot_reach, check_wfs_header,
                            check_wfs_values, job_memory_bytes, pose_file_kind, MAX_ROWS)
 from .robot import RobotModel, Scene, inverse_kinematics, load_robot, robot_scene
@@ -344,8 +345,9 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
     Returns
     -------
     dict
-        ``pose_id``, ``estimate`` (PoseEstimate: pose (6,) mm and rad, cov (6, 6)) and
-        ``bench`` (the bench used).
+        ``pose_id``, ``estimate`` (PoseEstimate: pose (6,) mm and rad, cov (6, 6)), ``bench`` (the bench
+        used) and ``linearity`` (``pose_linearity.LinearityCheck``: is the covariance's Gaussian a fair account
+        of the likelihood over its 3 sigma?).
 
     Raises
     ------
@@ -375,7 +377,8 @@ def estimate(design: LensSpec, measurement: str | PathLike[str] | formats.WfsDat
     est, reason = estimate_one(model, z, [None])
     if est is None:
         raise CalibrationError(f"{where}: no lens pose found ({reason})")
-    return {"pose_id": wfs.ids[k], "estimate": est, "bench": b}
+    return {"pose_id": wfs.ids[k], "estimate": est, "bench": b,
+            "linearity": linearity_check(model, z, est.pose, est.cov, est.chi2)}
 
 
 

@@ -107,6 +107,9 @@ def estimate_cmd(
             info(f"  {name} = {e.pose[k] * 1e3:10.2f} um  +- {std[k] * 1e3:.2f} um")
         else:
             info(f"  {name} = {e.pose[k] * 1e3:10.4f} mrad +- {std[k] * 1e3:.4f} mrad")
+    lin = r["linearity"]
+    if not lin.reliable:
+        info(f"  warning: {lin.message}")
     mistake = dx = None
     if not mc.passed and not accept_failed_check:
         from ..calibration.diagnosis import diagnose_estimate
@@ -119,7 +122,7 @@ def estimate_cmd(
                    "check_failure": None if mc.passed else mc.reason, "model_check": mc.to_dict(),
                    **({"diagnosis": dx.to_dict()} if dx is not None else {}), **e.to_dict(),
                    "cov": [[(float(v) if np.isfinite(v) else None) for v in row] for row in e.cov],
-                   "cov_units": "mm and rad, pose vector (tx, ty, tz, rx, ry, rz)"})
+                   "cov_units": "mm and rad, pose vector (tx, ty, tz, rx, ry, rz)", "linearity": lin.to_dict()})
     end_on_failed_check(mc.passed, mc.reason, e.chi2_dof, accept_failed_check, accepted_as="reported",
                         mistake=None if mistake is None else mistake.message,
                         unexplained=("the measured wavefront does not fit the design's model at any pose; none of "
