@@ -53,9 +53,15 @@ class LinearityCheck:
 
     @property
     def message(self) -> str:
-        main = ", ".join(f"{DOF_NAMES[i]} {self.axis[i]:+.2f}" for i in np.argsort(-np.abs(self.axis))[:2])
-        how = (f"a {self.sigmas:g}-sigma step leaves the pupil unlit" if not np.isfinite(self.ratio) else
-               f"chi2 changes {self.ratio:.3g} times as much as the covariance predicts {self.sigmas:g} sigma out")
+        order = np.argsort(-np.abs(self.axis))
+        main = ", ".join(f"{DOF_NAMES[i]} {self.axis[i]:+.2f}" for k, i in enumerate(order[:3])
+                         if k == 0 or abs(self.axis[i]) >= 0.2)
+        if not np.isfinite(self.ratio):
+            how = f"a {self.sigmas:g}-sigma step leaves the pupil unlit"
+        elif self.ratio <= 0:
+            how = f"chi2 falls {self.sigmas:g} sigma out (the estimate is not the likelihood's minimum along it)"
+        else:
+            how = f"chi2 changes {self.ratio:.3g} times as much as the covariance predicts {self.sigmas:g} sigma out"
         return (f"the likelihood is not the covariance's quadratic along its weakest direction ({main}): {how}, so "
                 "the reported sigmas there are not a confidence statement (a larger Zernike pupil or order, or a lens "
                 "that measures that direction better, narrows it)")
