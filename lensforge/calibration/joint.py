@@ -79,6 +79,8 @@ _FRESH_STEP = 0.3
 _MIN_RADIUS = 1e-12  # no descent within this trust radius (1-sigma units): a minimum, to rounding
 # a cross-talk bench: times the fit goes on with the windows its minimum's spots put elsewhere (``JointProblem.windows``)
 _WINDOW_PASSES = 4
+# relative step of the central difference of h in the lenslet focal length (a cross-talk bench with the gain)
+_FOCAL_STEP = 1e-4
 
 
 def pose_chain(A, X, Z, a, T_SO_nominal):
@@ -236,6 +238,11 @@ class JointProblem:
         # the sensor's gain g = 1 + gain_sigma s (s ~ N(0, 1), theta's last entry): the effective
         # lenslet focal length f (1 + gain_sigma s) scales every reported slope (module doc)
         self.gain_sigma = float(gain_sigma)
+        # on a cross-talk bench the focal length is also the model's: the neighbours' light interferes in each
+        # window over a path difference ~p^2 / 2f (~25 rad), so 1 % of f moves the small modes by up to 9 sigma
+        # beyond the gain (the physical sensor, polynomial lens at nominal, f 5.252 against 5.2 mm: the gain
+        # alone leaves 8.8 sigma, the model at f g 0.38); the own centroid's h does not depend on f
+        self.focal_in_model = self.gain_sigma > 0 and bench.sensor.crosstalk != "none"
         self.k_lens = param.k
         self.k = param.k + (1 if self.gain_sigma > 0 else 0)
         self.theta_prior = theta_prior
@@ -262,17 +269,26 @@ class JointProblem:
         """The sensor gain g of the state (1 without the gain parameter)."""
         return sensor_gain(theta, self.k_lens, self.gain_sigma)
 
-    def model(self, theta) -> ForwardModel:
-        theta = np.asarray(theta, float)[:self.k_lens]
-        key = theta.tobytes()
-        if key != self._model_key:
-            self._model = ForwardModel(self.bench, self.param.build(theta), validate=False)
-            if self.measurement is not None:
-                self._model = self.measurement.model(self._model)
-            self._model_key = key
-            if self.Li is None:
-                self.Li = self._model.whitener
-        return self._model
+    def model(self, theta, focal_step: float = 0.0) -> ForwardModel:
+        """The forward model of the state theta: its lens, and on a cross-talk bench the lenslet focal length
+        f g (times 1 + focal_step: a difference step, not cached)."""
+        theta = np.asarray(theta, float)
+        g = self.gain(theta) if self.focal_in_model else 1.0
+        key = theta[:self.k_lens].tobytes() + np.float64(g).tobytes()
+        if key == self._model_key and not focal_step:
+            return self._model
+        bench = self.bench
+        if g != 1.0 or focal_step:
+            bench = bench.replace(sensor={"lenslet_focal_mm": bench.sensor.lenslet_focal_mm * g * (1 + focal_step)})
+        model = ForwardModel(bench, self.param.build(theta[:self.k_lens]), validate=False)
+        if self.measurement is not None:
+            model = self.measurement.model(model)
+        if focal_step:
+            return model
+        self._model, self._model_key = model, key
+        if self.Li is None:
+            self.Li = model.whitener
+        return model
 
     def residuals(self, X, Z, theta, a, uv0=None, place_windows: bool = False):
         """(r_z (n, m) whitened, lit (n,), B, x, uv, z_model) at the state; place_windows: the
@@ -309,8 +325,15 @@ class JointProblem:
         self.n_traced += JACOBIAN_EVALS * self.n
         g = self.gain(theta)
         S, Jt = g * np.einsum("ij,njp->nip", self.Li, J), g * np.einsum("ij,njp->nip", self.Li, Jt)
-        if self.k > self.k_lens:  # d(g h)/ds = gain_sigma h
-            Jt = np.concatenate([Jt, self.gain_sigma * (res.z @ self.Li.T)[..., None]], axis=2)
+        if self.k > self.k_lens:  # d(g h)/ds = gain_sigma h (+ g dh/ds through the model's focal length)
+            dz = self.gain_sigma * res.z
+            if self.focal_in_model:  # dh/ds = gain_sigma f dh/df: a central difference, the windows frozen
+                e = _FOCAL_STEP
+                hp, hm = (self.model(theta, focal_step=t).evaluate(x, uv0=uv, check_range=False,
+                                                                     windows=self.windows).z for t in (e, -e))
+                self.n_traced += 2 * self.n
+                dz = dz + g * self.gain_sigma * (hp - hm) / (2 * e * self.gain(theta))
+            Jt = np.concatenate([Jt, (dz @ self.Li.T)[..., None]], axis=2)
         return S, Jt
 
     def blocks(self, S, Jt, B, x, X):
