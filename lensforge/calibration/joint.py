@@ -327,12 +327,12 @@ class JointProblem:
         S, Jt = g * np.einsum("ij,njp->nip", self.Li, J), g * np.einsum("ij,njp->nip", self.Li, Jt)
         if self.k > self.k_lens:  # d(g h)/ds = gain_sigma h (+ g dh/ds through the model's focal length)
             dz = self.gain_sigma * res.z
-            if self.focal_in_model:  # dh/ds = gain_sigma f dh/df: a central difference, the windows frozen
-                e = _FOCAL_STEP
+            if self.focal_in_model:  # g dh/ds = g gain_sigma f_bench dh/df, f = f_bench g: a central difference in
+                e = _FOCAL_STEP       # f (1 +- e), the windows frozen
                 hp, hm = (self.model(theta, focal_step=t).evaluate(x, uv0=uv, check_range=False,
                                                                      windows=self.windows).z for t in (e, -e))
                 self.n_traced += 2 * self.n
-                dz = dz + g * self.gain_sigma * (hp - hm) / (2 * e * self.gain(theta))
+                dz = dz + self.gain_sigma * (hp - hm) / (2 * e)
             Jt = np.concatenate([Jt, (dz @ self.Li.T)[..., None]], axis=2)
         return S, Jt
 
