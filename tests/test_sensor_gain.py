@@ -123,6 +123,7 @@ def test_cross_talk_bench_carries_the_focal_length_in_its_model(setup):
     the 'cells' model at f g, times g, are fitted exactly at the truth, and the Jacobian's gain column is the
     derivative of those residuals (central differences in s, windows frozen)."""
     from lensforge.calibration.joint import JointProblem, pose_chain
+    from lensforge.optics.shack_hartmann import ForwardModel
 
     bench0, lens, scene, plan = setup
     bench = bench0.replace(sensor={"crosstalk": "cells", "pupil_radius_mm": 0.5, "zernike_order": 3})
@@ -131,8 +132,6 @@ def test_cross_talk_bench_carries_the_focal_length_in_its_model(setup):
     gs, s = 0.01, 1.2
     g = 1 + gs * s
     _, x = pose_chain(A, scene.X, scene.Z, np.zeros((2, 6)), scene.T_SO_nominal)
-    from lensforge.optics.shack_hartmann import ForwardModel
-
     f_bench = bench.sensor.lenslet_focal_mm
     truth = ForwardModel(bench.replace(sensor={"lenslet_focal_mm": f_bench * g}), lens)
     z = g * truth.evaluate(x, check_range=False).z
