@@ -29,6 +29,12 @@ I = I_beam / |det d(X,Y)/d(u,v)| (flux conservation).
   0.06 sigma per mode on the paper's polynomial and extended-polynomial lenses, within
   0.7 sigma (Z4) on the strongly converging spherical and Zernike lenses (a residual
   the first-order gains do not capture; the lenslet-centre model was 15-30 sigma off).
+  The mean slope s_u also holds the wavefront's third derivatives' share, (W_xxx + W_xyy)
+  p^2 / 24 in s_x: a coma within the sub-aperture, whose flared side the window cuts, so
+  the window sees it with gains ``cubic_gain`` (0.896 direct, 0.948 cross at the defaults),
+  the third derivatives taken across neighbouring lenslets (``cubic_slopes``). On the
+  co-designed default lens (slopes to 100 mrad) it is Z3 2.0-2.5 sigma; the paper's lenses,
+  < 0.05 sigma (tests/test_physical_optics.py).
 * threshold: a lenslet is used only when its mean irradiance sum_q w_q I_q is at
   least ``sensor.irradiance_threshold`` of the beam peak. Thorlabs' software cuts the
   noise floor per spot area ("Auto" noise cut, recommended; WFS Series manual,
@@ -46,7 +52,8 @@ from .bench import CROSSTALK_MODELS, Sensor
 
 __all__ = ["quadrature_rule", "window_gain", "centroid_slopes", "centroid_slope_derivatives", "CROSSTALK_MODELS",
            "crosstalk_shift", "reference_shift", "local_field", "crosstalk_slopes", "TRACKING_ITERATIONS",
-           "crosstalk_slope_derivatives", "LOCAL_INPUTS"]
+           "crosstalk_slope_derivatives", "LOCAL_INPUTS", "cubic_gain", "cubic_slopes",
+           "axis_derivative"]
 
 
 @lru_cache(maxsize=8)
@@ -63,19 +70,13 @@ def quadrature_rule(n: int) -> tuple[np.ndarray, np.ndarray]:
     return off, wt
 
 
-@lru_cache(maxsize=32)
-def _window_gain(pitch, focal, pixel, window_px, threshold, wavelength_mm, cross: bool, kappa: float = 1e-3) -> float:
-    M, sub = 128, 4  # gamma converges as 1/M^2: 0.8694 (M = 32), 0.8707 (64), 0.8707 (128)
+def _one_lenslet_centroid(pitch, focal, pixel, window_px, threshold, wavelength_mm, inten_ap, W) -> float:
+    """x centroid (mm) on a ``window_px`` square of ``pixel`` pixels, centred on the lenslet's axis, of the
+    Fraunhofer spot of one square sub-aperture carrying irradiance inten_ap and wavefront W (mm), both (M, M)
+    [y, x] at M midpoints across the pitch; ``threshold`` x the window's peak subtracted first."""
+    M, sub = inten_ap.shape[0], 4
     t = pitch * ((np.arange(M) + 0.5) / M - 0.5)
-    X, Y = np.meshgrid(t, t, indexing="xy")
-    eps = 0.1  # irradiance ramp over the pitch; kappa: wavefront curvature 1/mm
-    # direct: ramp along x, W = kappa x^2 / 2; cross: ramp along y, W = kappa x y (x-shift from the y-ramp)
-    ramp = Y if cross else X
-    inten_ap = 1.0 + eps * ramp / pitch
-    k = 2 * np.pi / wavelength_mm
-    W = kappa * X * Y if cross else 0.5 * kappa * X**2
-    E = np.sqrt(inten_ap) * np.exp(1j * k * W)
-    moment = focal * kappa * np.sum(inten_ap * ramp) / np.sum(inten_ap)  # complete-spot centroid shift, mm
+    E = np.sqrt(inten_ap) * np.exp(2j * np.pi / wavelength_mm * W)
     cam = ((np.arange(window_px * sub) + 0.5) / sub - 0.5 * window_px) * pixel
     F = np.exp(-2j * np.pi * np.outer(cam, t) / (wavelength_mm * focal))
     A = F @ E @ F.T  # (y, x) on the camera samples
@@ -83,8 +84,35 @@ def _window_gain(pitch, focal, pixel, window_px, threshold, wavelength_mm, cross
     if threshold > 0:
         inten = np.clip(inten - threshold * inten.max(), 0.0, None)
     c = (np.arange(window_px) - 0.5 * (window_px - 1)) * pixel
-    centroid = inten.sum(axis=0) @ c / inten.sum()
-    return float(centroid / moment)
+    return float(inten.sum(axis=0) @ c / inten.sum())
+
+
+def _subaperture_grid(pitch: float, M: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    t = pitch * ((np.arange(M) + 0.5) / M - 0.5)  # gamma converges as 1/M^2: 0.8694 (M = 32), 0.8707 (64, 128)
+    return np.meshgrid(t, t, indexing="xy")
+
+
+@lru_cache(maxsize=32)
+def _window_gain(pitch, focal, pixel, window_px, threshold, wavelength_mm, cross: bool, kappa: float = 1e-3) -> float:
+    X, Y = _subaperture_grid(pitch)
+    eps = 0.1  # irradiance ramp over the pitch; kappa: wavefront curvature 1/mm
+    # direct: ramp along x, W = kappa x^2 / 2; cross: ramp along y, W = kappa x y (x-shift from the y-ramp)
+    ramp = Y if cross else X
+    inten_ap = 1.0 + eps * ramp / pitch
+    W = kappa * X * Y if cross else 0.5 * kappa * X**2
+    moment = focal * kappa * np.sum(inten_ap * ramp) / np.sum(inten_ap)  # complete-spot centroid shift, mm
+    return _one_lenslet_centroid(pitch, focal, pixel, window_px, threshold, wavelength_mm, inten_ap, W) / moment
+
+
+@lru_cache(maxsize=32)
+def _cubic_gain(pitch, focal, pixel, window_px, threshold, wavelength_mm, cross: bool, c: float = 0.05) -> float:
+    X, Y = _subaperture_grid(pitch)
+    # W = c x^3 / 6 (direct) or c x y^2 / 2 (cross): either adds c p^2 / 24 to the mean x slope, as a coma whose
+    # flared side the window cuts; the difference of +c and -c takes out the threshold's even part
+    W = c * X * Y**2 / 2 if cross else c * X**3 / 6
+    one = np.ones_like(X)
+    d = [_one_lenslet_centroid(pitch, focal, pixel, window_px, threshold, wavelength_mm, one, sgn * W) for sgn in (1, -1)]
+    return 0.5 * (d[0] - d[1]) / (focal * c * pitch**2 / 24)
 
 
 def window_gain(sensor: Sensor, wavelength_nm: float) -> tuple[float, float]:
@@ -96,9 +124,26 @@ def window_gain(sensor: Sensor, wavelength_nm: float) -> tuple[float, float]:
     """
     if sensor.centroid_window_px == 0:
         return 1.0, 1.0
-    args = (sensor.pitch_mm, sensor.lenslet_focal_mm, sensor.pixel_mm, int(sensor.centroid_window_px),
-            float(sensor.centroid_threshold), wavelength_nm * 1e-6)
+    args = _gain_args(sensor, wavelength_nm)
     return _window_gain(*args, False), _window_gain(*args, True)
+
+
+def _gain_args(sensor: Sensor, wavelength_nm: float) -> tuple:
+    return (sensor.pitch_mm, sensor.lenslet_focal_mm, sensor.pixel_mm, int(sensor.centroid_window_px),
+            float(sensor.centroid_threshold), wavelength_nm * 1e-6)
+
+
+def cubic_gain(sensor: Sensor, wavelength_nm: float) -> tuple[float, float]:
+    """Gains (direct, cross) of the pixel-window centroid on the part of the mean slope that the wavefront's third
+    derivatives add over the sub-aperture: W_xxx p^2 / 24 (direct) and W_xyy p^2 / 24 (cross) in s_x, and alike
+    in s_y. Such a term is a coma within the lenslet, and the window cuts its flared side: (0.896, 0.948) on the
+    default WFS40 bench, (1, 1) for the complete spot (window 0). First order: on a spot defocused by the
+    sub-aperture's own curvature K (1/mm) the direct gain is 0.895, 0.890, 0.868, 0.801 at K = 0.01, 0.03, 0.06,
+    0.1 (the default design's lenslets: |K| <= 0.033)."""
+    if sensor.centroid_window_px == 0:
+        return 1.0, 1.0
+    args = _gain_args(sensor, wavelength_nm)
+    return _cubic_gain(*args, False), _cubic_gain(*args, True)
 
 
 def centroid_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray,
@@ -803,26 +848,51 @@ def cell_pistons(tilt: np.ndarray, K: np.ndarray, lit: np.ndarray, axis_nb: np.n
     return W.reshape(lead + (L,)), comp.reshape(lead + (L,))
 
 
+def axis_derivative(v: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float, ax: int) -> np.ndarray:
+    """d v / d x_ax (..., L) of a per-lenslet quantity v (..., L) from its lit axis neighbours (``axis_neighbours``):
+    the central difference, one-sided at the lit region's edge, 0 for a lenslet with no lit neighbour along ax.
+    Linear in v (a complex step passes through)."""
+    lo, hi = axis_nb[:, ax, 0], axis_nb[:, ax, 1]
+    has_lo = (lo >= 0) & np.take(lit, np.maximum(lo, 0), axis=-1) & lit
+    has_hi = (hi >= 0) & np.take(lit, np.maximum(hi, 0), axis=-1) & lit
+    z = np.zeros((), dtype=v.dtype)
+    d_hi = np.where(has_hi, np.take(v, np.maximum(hi, 0), axis=-1) - v, z)
+    d_lo = np.where(has_lo, v - np.take(v, np.maximum(lo, 0), axis=-1), z)
+    n = has_hi.astype(float) + has_lo.astype(float)
+    return (d_hi + d_lo) / (np.maximum(n, 1.0) * pitch)
+
+
 def ln_i_curvature(g: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float) -> np.ndarray:
     """h (..., L, 2) = d^2 ln I / dx^2, d^2 ln I / dy^2 (1/mm^2) of each lit lenslet from its lit neighbours'
-    gradients g (..., L, 2) (the 2 x 2 rule sees no curvature in one cell): central differences, one-sided at the
-    lit region's edge, 0 for a lenslet with no lit neighbour along the axis; kept to |h| p^2 / 4 <=
-    ``CELL_DELTA_MAX``."""
-    h = []
-    for ax in range(2):
-        lo, hi = axis_nb[:, ax, 0], axis_nb[:, ax, 1]
-        has_lo = (lo >= 0) & np.take(lit, np.maximum(lo, 0), axis=-1) & lit
-        has_hi = (hi >= 0) & np.take(lit, np.maximum(hi, 0), axis=-1) & lit
-        g_lo = np.take(g[..., ax], np.maximum(lo, 0), axis=-1)
-        g_hi = np.take(g[..., ax], np.maximum(hi, 0), axis=-1)
-        g0 = g[..., ax]
-        z = np.zeros((), dtype=g.dtype)
-        d_hi, d_lo = np.where(has_hi, g_hi - g0, z), np.where(has_lo, g0 - g_lo, z)
-        n = has_hi.astype(float) + has_lo.astype(float)
-        h.append((d_hi + d_lo) / (np.maximum(n, 1.0) * pitch))
-    h = np.stack(h, axis=-1)
+    gradients g (..., L, 2) (the 2 x 2 rule sees no curvature in one cell): ``axis_derivative``; kept to
+    |h| p^2 / 4 <= ``CELL_DELTA_MAX``."""
+    h = np.stack([axis_derivative(g[..., ax], lit, axis_nb, pitch, ax) for ax in range(2)], axis=-1)
     lim = 4.0 * CELL_DELTA_MAX / pitch**2
     return np.where(np.abs(np.real(h)) > lim, np.sign(np.real(h)) * lim, h)
+
+
+def cubic_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray, axis_nb: np.ndarray,
+                 pitch: float, gains: tuple[float, float]) -> np.ndarray:
+    """Correction (..., L, 2) to the lenslets' plain mean slopes for the window's view of their wavefront's third
+    derivatives: -(1 - g_d) W_xxx p^2 / 24 - (1 - g_c) W_xyy p^2 / 24 in s_x (W_yyy and W_xxy in s_y), gains from
+    ``cubic_gain``; sq (..., L, q, 2) and wi (..., L, q) the quadratures of L lenslets, axis_nb (L, 2, 2) their
+    ``axis_neighbours``. The 2 x 2 rule's mean slope holds the cubic's share exactly, but a model that renders it
+    as a tilt (the own centroid, 'cells') sees it with gain 1, where a pixel window sees ~0.9 of it. The third
+    derivatives are ``axis_derivative``s of the lit lenslets' slope gradients K (d s_i / d x_j); W_xyy = d K_yy / dx
+    = d K_xy / dy, the two averaged (and alike for W_xxy). Linear in sq: along a direction dsq (with the same wi)
+    it is its own derivative."""
+    g_d, g_c = gains
+    if (g_d == 1.0 and g_c == 1.0) or np.any(weights @ offsets**2 == 0):  # the complete spot, or the centre rule
+        return np.zeros(sq.shape[:-2] + (2,), dtype=sq.dtype)
+    lit = np.all(np.real(wi) > 0, axis=-1)
+    K = _slope_gradient(sq, offsets, weights, pitch)
+    v = np.stack([K[..., 0, 0], K[..., 1, 1], 0.5 * (K[..., 0, 1] + K[..., 1, 0])])  # (3, ..., L): xx, yy, xy
+    dx, dy = (axis_derivative(v, lit, axis_nb, pitch, ax) for ax in (0, 1))
+    w_xxx, w_yyy = dx[0], dy[1]
+    w_xyy = 0.5 * (dx[1] + dy[2])
+    w_xxy = 0.5 * (dy[0] + dx[2])
+    c = pitch * pitch / 24.0
+    return -c * np.stack([(1 - g_d) * w_xxx + (1 - g_c) * w_xyy, (1 - g_d) * w_yyy + (1 - g_c) * w_xxy], axis=-1)
 
 
 def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centres: np.ndarray, sensor: Sensor,
@@ -948,5 +1018,5 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     # the tracking rule's first window: on the reference spot plus f times the slope (``TRACKING_ITERATIONS``)
     d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
                        return_windows=True, start=spot + ref)
-    out = s + (d - ref) / f
+    out = s + (d - ref) / f + cubic_slopes(sq, wi, offsets, weights, axis_nb, p, cubic_gain(sensor, wavelength_nm))[..., :n, :]
     return (out, st) if return_windows else out

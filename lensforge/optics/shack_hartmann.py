@@ -34,9 +34,9 @@ import numpy as np
 from ..errors import PoseRangeError, PupilError, SensorRangeError, TraceError
 from .bench import Bench, Sensor
 from .lens import Lens
-from .centroid import (LOCAL_INPUTS, cell_crosstalk_slopes, centroid_slope_derivatives, centroid_slopes,
-                       crosstalk_slope_derivatives, crosstalk_slopes, lit_lenslets,
-                       quadrature_rule, window_gain)
+from .centroid import (LOCAL_INPUTS, axis_neighbours, cell_crosstalk_slopes, centroid_slope_derivatives,
+                       centroid_slopes, crosstalk_slope_derivatives, crosstalk_slopes, cubic_gain, cubic_slopes,
+                       lit_lenslets, quadrature_rule, window_gain)
 from .sensor_range import SensorRange, range_use, summarize_range
 from .trace import (AIM_TOL, CLIPPED, MISSED, OK, STATUS_NAMES, TIR, LensTangents, aim_rays, aimed_tangents,
                     lens_kernel, trace_rays)
@@ -247,6 +247,7 @@ class ForwardModel:
         off, w = quadrature_rule(bench.sensor.subaperture_quadrature) if quadrature is None else quadrature
         self.quad_offsets, self.quad_weights = off, w
         self.window_gain = window_gain(bench.sensor, bench.laser.wavelength_nm)
+        self.cubic_gain = cubic_gain(bench.sensor, bench.laser.wavelength_nm)
         # the traced lenslets: the pupil's, and with the 'cells' cross-talk model every lenslet lit within its
         # rings of the pupil (their fields reach the pupil's windows), the pupil's first (``lit_lenslets``)
         if self._cells:
@@ -254,6 +255,7 @@ class ForwardModel:
         else:
             self.lit_centres, self.lit_neighbours = self.pupil.centres, None
         self.n_traced = len(self.lit_centres)
+        self.axis_neighbours = axis_neighbours(self.lit_centres, bench.sensor.pitch_mm)
         # aim targets: the quadrature points of every traced lenslet, lenslet-major (L * q, 2)
         self.targets = np.ascontiguousarray(
             (self.lit_centres[:, None, :] + bench.sensor.pitch_mm * off[None, :, :]).reshape(-1, 2))
@@ -342,9 +344,17 @@ class ForwardModel:
                                          return_windows=return_windows)
         s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
         if self._own_centroid:
+            s = s + self._cubic(sq, wi)
             return (s, None) if return_windows else s
-        return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
-                                self.bench.laser.wavelength_nm, windows=windows, return_windows=return_windows)
+        out = crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
+                               self.bench.laser.wavelength_nm, windows=windows, return_windows=return_windows)
+        return (out[0] + self._cubic(sq, wi), out[1]) if return_windows else out + self._cubic(sq, wi)
+
+    def _cubic(self, sq, wi) -> np.ndarray:
+        """The own centroid's view of each lenslet's wavefront third derivatives (``centroid.cubic_slopes``): linear in
+        sq, so along directions dsq (..., d, n, q, 2) with wi (..., 1, n, q) it gives their derivatives."""
+        return cubic_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.axis_neighbours,
+                            self.bench.sensor.pitch_mm, self.cubic_gain)
 
     def _centroid_derivatives(self, sq, wi, dsq, dwi, exact: bool = True, windows=None) -> np.ndarray:
         """(P, d, n, 2): the centroids' derivatives along d directions of the quadrature slopes
@@ -359,7 +369,7 @@ class ForwardModel:
             n = self.pupil.n_lenslets
             ds = centroid_slope_derivatives(sq[:, :n], wi[:, :n], dsq[:, :n], dwi[:, :n], self.quad_offsets,
                                             self.quad_weights, self.window_gain)
-            return np.moveaxis(ds, -1, 1)
+            return np.moveaxis(ds, -1, 1) + self._cubic_derivatives(wi, dsq)[:, :, :n]
         if self._cells:  # a window sees its neighbours' inputs too: a complex step along each direction
             eps, d = 1e-30, dsq.shape[-1]
             out = []
@@ -375,11 +385,16 @@ class ForwardModel:
             ds = crosstalk_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain,
                                              self.pupil.centres, self.bench.sensor, self.bench.laser.wavelength_nm,
                                              windows=windows)
-            return np.moveaxis(ds, -1, 1)
+            return np.moveaxis(ds, -1, 1) + self._cubic_derivatives(wi, dsq)
         eps = 1e-30
         sq_c = sq[:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, d, n, q, 2)
         wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, d, n, q)
         return self._centroids(sq_c, wi_c, None if windows is None else windows[:, None]).imag / eps
+
+    def _cubic_derivatives(self, wi, dsq) -> np.ndarray:
+        """(P, d, L, 2) derivatives of ``_cubic`` along dsq (P, L, q, 2, d) (it is linear in the slopes)."""
+        L = self.n_traced
+        return self._cubic(np.moveaxis(dsq[:, :L], -1, 1), wi[:, None, :L])
 
     def _zernike(self, a: dict, windows=None) -> ZernikeResult:
         sensor = self.bench.sensor
