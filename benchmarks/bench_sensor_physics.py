@@ -220,6 +220,11 @@ def validate(path: str, design: str | None, models=("neighbours", "cells"), assu
         for mname in models:
             line += f" | {mname}: " + " ".join(_worst(x[f"{mname}_sigma"], r["modes"]) for x in rows)
         print(line, flush=True)
+        print("  per mode (sigma), modes " + " ".join(f"{m:>6d}" for m in r["modes"]), flush=True)
+        for i, x in enumerate(rows):  # the table: old model, new model(s), against the physical reference
+            for mname in ("old", *models):
+                print(f"  pose {i} {mname:>10s}" + " " * 12 + " ".join(f"{v:+6.2f}" for v in x[f"{mname}_sigma"]),
+                      flush=True)
     return out
 
 
