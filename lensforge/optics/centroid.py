@@ -1018,5 +1018,5 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     # the tracking rule's first window: on the reference spot plus f times the slope (``TRACKING_ITERATIONS``)
     d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
                        return_windows=True, start=spot + ref)
-    out = s + (d - ref) / f + cubic_slopes(sq, wi, offsets, weights, axis_nb, p, cubic_gain(sensor, wavelength_nm))[..., :n, :]
+    out = s + (d - ref) / f  # ForwardModel adds the window's view of the cubic (``cubic_slopes``), as to every model
     return (out, st) if return_windows else out

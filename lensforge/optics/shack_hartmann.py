@@ -336,40 +336,51 @@ class ForwardModel:
 
     def _centroids(self, sq, wi, windows=None, return_windows: bool = False):
         """Centroid slopes (..., n, 2) of the pupil lenslets from the traced lenslets' quadratures sq (..., L, q, 2)
-        and weights wi (..., L, q)."""
-        sensor = self.bench.sensor
+        and weights wi (..., L, q): the window's centroid (``_window_centroids``) and its view of each lenslet's
+        wavefront third derivatives (``_cubic``), which every sensor model shares."""
+        s, st = self._window_centroids(sq, wi, windows)
+        s = s + self._cubic(sq, wi)[..., :self.pupil.n_lenslets, :]
+        return (s, st) if return_windows else s
+
+    def _window_centroids(self, sq, wi, windows=None):
+        """(slopes (..., n, 2), windows or None) of the bench's sensor model (``sensor.crosstalk``), without the
+        cubic term."""
+        sensor, wl = self.bench.sensor, self.bench.laser.wavelength_nm
         if self._cells:
             return cell_crosstalk_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.lit_centres,
-                                         self.lit_neighbours, sensor, self.bench.laser.wavelength_nm, windows=windows,
-                                         return_windows=return_windows)
+                                         self.lit_neighbours, sensor, wl, windows=windows, return_windows=True)
         s = centroid_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.window_gain)
         if self._own_centroid:
-            s = s + self._cubic(sq, wi)
-            return (s, None) if return_windows else s
-        out = crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor,
-                               self.bench.laser.wavelength_nm, windows=windows, return_windows=return_windows)
-        return (out[0] + self._cubic(sq, wi), out[1]) if return_windows else out + self._cubic(sq, wi)
+            return s, None
+        return crosstalk_slopes(s, sq, wi, self.quad_offsets, self.quad_weights, self.pupil.centres, sensor, wl,
+                                windows=windows, return_windows=True)
 
     def _cubic(self, sq, wi) -> np.ndarray:
-        """The own centroid's view of each lenslet's wavefront third derivatives (``centroid.cubic_slopes``): linear in
-        sq, so along directions dsq (..., d, n, q, 2) with wi (..., 1, n, q) it gives their derivatives."""
+        """(..., L, 2) the window's view of each traced lenslet's wavefront third derivatives (``centroid.cubic_slopes``).
+        Linear in sq: along directions dsq (..., d, L, q, 2) with wi (..., 1, L, q) it gives their derivatives."""
         return cubic_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.axis_neighbours,
                             self.bench.sensor.pitch_mm, self.cubic_gain)
 
     def _centroid_derivatives(self, sq, wi, dsq, dwi, exact: bool = True, windows=None) -> np.ndarray:
         """(P, d, n, 2): the centroids' derivatives along d directions of the quadrature slopes
         dsq (P, n, q, 2, d) and weights dwi (P, n, q, d): in closed form for the lenslet's own
-        centroid; with the neighbours' cross-talk by a complex step through ``_centroids``
+        centroid; with the neighbours' cross-talk by a complex step through ``_window_centroids``
         (analytic in (sq, wi), so Im f(x + i e dx) / e = f'(x) dx exactly), or, for more than
         ``LOCAL_INPUTS`` directions, along the kernel's 8 inputs per lenslet, chained
         (``crosstalk_slope_derivatives``). exact=False: the own centroid's, cross-talk or not
         (an iteration Jacobian's: the cross-talk's part of the derivative, a few percent of the
-        information, costs 8 kernel passes)."""
+        information, costs 8 kernel passes). The cubic term, linear in the slopes, is added once."""
+        n = self.pupil.n_lenslets
+        cubic = self._cubic(np.moveaxis(dsq, -1, 1), wi[:, None])[:, :, :n]
+        return self._window_derivatives(sq, wi, dsq, dwi, exact, windows) + cubic
+
+    def _window_derivatives(self, sq, wi, dsq, dwi, exact: bool, windows) -> np.ndarray:
+        """(P, d, n, 2): ``_centroid_derivatives`` without the cubic term."""
         if self._own_centroid or not exact:
             n = self.pupil.n_lenslets
             ds = centroid_slope_derivatives(sq[:, :n], wi[:, :n], dsq[:, :n], dwi[:, :n], self.quad_offsets,
                                             self.quad_weights, self.window_gain)
-            return np.moveaxis(ds, -1, 1) + self._cubic_derivatives(wi, dsq)[:, :, :n]
+            return np.moveaxis(ds, -1, 1)
         if self._cells:  # a window sees its neighbours' inputs too: a complex step along each direction
             eps, d = 1e-30, dsq.shape[-1]
             out = []
@@ -379,22 +390,17 @@ class ForwardModel:
                 wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi[..., k], -1, 1)
                 w_ = None if windows is None else np.broadcast_to(windows[:, None], (sq.shape[0], sq_c.shape[1])
                                                                   + windows.shape[1:])
-                out.append(self._centroids(sq_c, wi_c, w_).imag / eps)
+                out.append(self._window_centroids(sq_c, wi_c, w_)[0].imag / eps)
             return np.concatenate(out, axis=1)
         if dsq.shape[-1] > LOCAL_INPUTS:  # more directions than the kernel has inputs: chain through them
             ds = crosstalk_slope_derivatives(sq, wi, dsq, dwi, self.quad_offsets, self.quad_weights, self.window_gain,
                                              self.pupil.centres, self.bench.sensor, self.bench.laser.wavelength_nm,
                                              windows=windows)
-            return np.moveaxis(ds, -1, 1) + self._cubic_derivatives(wi, dsq)
+            return np.moveaxis(ds, -1, 1)
         eps = 1e-30
         sq_c = sq[:, None] + 1j * eps * np.moveaxis(dsq, -1, 1)  # (P, d, n, q, 2)
         wi_c = wi[:, None] + 1j * eps * np.moveaxis(dwi, -1, 1)  # (P, d, n, q)
-        return self._centroids(sq_c, wi_c, None if windows is None else windows[:, None]).imag / eps
-
-    def _cubic_derivatives(self, wi, dsq) -> np.ndarray:
-        """(P, d, L, 2) derivatives of ``_cubic`` along dsq (P, L, q, 2, d) (it is linear in the slopes)."""
-        L = self.n_traced
-        return self._cubic(np.moveaxis(dsq[:, :L], -1, 1), wi[:, None, :L])
+        return self._window_centroids(sq_c, wi_c, None if windows is None else windows[:, None])[0].imag / eps
 
     def _zernike(self, a: dict, windows=None) -> ZernikeResult:
         sensor = self.bench.sensor
