@@ -256,8 +256,10 @@ def test_cells_windows_follow_the_tracking_rule():
     ref = centroid.cell_reference_shift(sensor, 532.0, centres, neighbours)
     tilt, K, g, ln_a, lit = centroid.cell_fields(sq, wi, q, w, sensor.pitch_mm)
     m = centres[:n] + f * tilt[:n]
-    W, comp = centroid.cell_pistons(tilt, K, lit, centroid.axis_neighbours(centres, sensor.pitch_mm), sensor.pitch_mm)
-    own = {"tilt": tilt, "K": K, "g": g, "h": np.zeros_like(g), "ln_a": ln_a, "lit": lit, "W": W, "comp": comp}
+    axis_nb = centroid.axis_neighbours(centres, sensor.pitch_mm)
+    W, comp = centroid.cell_pistons(tilt, K, lit, axis_nb, sensor.pitch_mm)
+    own = {"tilt": tilt, "K": K, "g": g, "h": np.zeros_like(g), "ln_a": ln_a, "lit": lit, "W": W, "comp": comp,
+           "w3": centroid.third_derivatives(K, lit, axis_nb, sensor.pitch_mm)}
     _, want = centroid.cell_shift(m, own, centres, neighbours, sensor, 532.0, return_windows=True, start=m + ref)
     np.testing.assert_array_equal(st, want)
 

@@ -482,43 +482,75 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
         arg = arg + (p / (2 * np.pi)) * (g[1][:, :, None, :] + 2 * q[:, :, None, :] * x4)  # (m, B, S, 2)
         ramp = ramp + (g[1][:, :, None, :] * x4 + q[:, :, None, :] * x4 * x4)[..., None]
         alpha = alpha + p * p * q[:, :, None, :]
+    coma = "coma" in block
+    n_mom = R + (4 if rs else 3 if coma else 0)  # the remainder's and the coma's moments beyond the series' R
     if "gam" in block:  # the irradiance gradient and curvature across each sub-aperture (its own weighting)
         gam, dlt = block["gam"][:, :, None, :], block["dlt"][:, :, None, :]
         if rs:  # one (gamma, delta) per sub-aperture and axis, not per sample: the aperture kernel's cache holds
             gam = gam - p * g[0][:, :, None, :]
-        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R + 4 * rs, gam, dlt)
+        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, n_mom, gam, dlt)
     else:
-        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, R)  # (m, B, S, 2, R+1): each sub-aperture's moments
+        mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, n_mom)  # (m, B, S, 2, n_mom+1): each sub-aperture's
     cos_r, sin_r = np.cos(ramp), np.sin(ramp)
     if rs:
         amp = np.exp(g[0][:, :, None, :] * x4)[..., None]
         cos_r, sin_r = amp * cos_r, amp * sin_r
-    ar, ai = mr * cos_r - mi * sin_r, mr * sin_r + mi * cos_r  # (m, B, S, 2, R+1 (+4))
+    ar, ai = mr * cos_r - mi * sin_r, mr * sin_r + mi * cos_r  # (m, B, S, 2, n_mom+1)
+    # the field is sum over b and slots j of Y_bj(y) X_bj(x), each a series in r: (Re, Im) (m, B, J, S, R+1)
+    if rs:  # the remainder's monomials: x factors X_j against y factors e_y^j, j = 0 .. 4
+        er, ei = _rs_powers(ar, ai, xs, p, R)  # the moments of e^a = (x - p t)^a, a = 0 .. 4
+        x5, y5 = _rs_factors(er, ei, rem, R)  # (m, B, 5, S, R+1)
+    else:
+        x5 = (ar[:, :, None, :, 0, :R + 1], ai[:, :, None, :, 0, :R + 1])
+        y5 = (ar[:, :, None, :, 1, :R + 1], ai[:, :, None, :, 1, :R + 1])
+    if coma:
+        x5, y5 = _coma_factors(ar, ai, block["coma"], R, x5, y5)
     # y factor carries C_b (i a)^r / r!: its real and imaginary parts (real arithmetic for the complex step)
     wr = cr[..., None] * ir_re - ci[..., None] * ir_im  # C_b i^r, (m, B, R+1)
     wi = cr[..., None] * ir_im + ci[..., None] * ir_re
-    wr, wi = wr * pw, wi * pw
-    # stacks (m, S_y, B K) @ (m, B K, S_x), contiguous: numpy's matmul takes its fast path only then
-    if rs:  # the remainder's monomials: K = 5 (R+1), x factors X_j against y factors e_y^j, j = 0 .. 4
-        er, ei = _rs_powers(ar, ai, xs, p, R)  # the moments of e^a = (x - p t)^a, a = 0 .. 4
-        (xr5, xi5), (yr5, yi5) = _rs_factors(er, ei, rem, R)  # (m, B, 5, S, R+1)
-        wr, wi = wr[:, :, None, None, :], wi[:, :, None, None, :]
-        m_, S = xr5.shape[0], xr5.shape[3]
-        yrT = np.ascontiguousarray(np.moveaxis(wr * yr5 - wi * yi5, 3, 1).reshape(m_, S, -1))
-        yiT = np.ascontiguousarray(np.moveaxis(wr * yi5 + wi * yr5, 3, 1).reshape(m_, S, -1))
-        xr = np.ascontiguousarray(np.moveaxis(xr5, 3, -1).reshape(m_, -1, S))
-        xi_ = np.ascontiguousarray(np.moveaxis(xi5, 3, -1).reshape(m_, -1, S))
-    else:  # K = R + 1
-        yr = wr[:, :, None, :] * ar[..., 1, :] - wi[:, :, None, :] * ai[..., 1, :]  # (m, B, S, R+1)
-        yi = wr[:, :, None, :] * ai[..., 1, :] + wi[:, :, None, :] * ar[..., 1, :]
-        m_, S = yr.shape[0], yr.shape[2]
-        yrT = np.ascontiguousarray(np.moveaxis(yr, 2, 1).reshape(m_, S, -1))
-        yiT = np.ascontiguousarray(np.moveaxis(yi, 2, 1).reshape(m_, S, -1))
-        xr = np.ascontiguousarray(np.moveaxis(ar[..., 0, :], 2, -1).reshape(m_, -1, S))
-        xi_ = np.ascontiguousarray(np.moveaxis(ai[..., 0, :], 2, -1).reshape(m_, -1, S))
+    wr, wi = (wr * pw)[:, :, None, None, :], (wi * pw)[:, :, None, None, :]
+    # stacks (m, S_y, B J (R+1)) @ (m, B J (R+1), S_x), contiguous: numpy's matmul takes its fast path only then
+    (xr5, xi5), (yr5, yi5) = x5, y5
+    m_, S = xr5.shape[0], xr5.shape[3]
+    yrT = np.ascontiguousarray(np.moveaxis(wr * yr5 - wi * yi5, 3, 1).reshape(m_, S, -1))
+    yiT = np.ascontiguousarray(np.moveaxis(wr * yi5 + wi * yr5, 3, 1).reshape(m_, S, -1))
+    xr = np.ascontiguousarray(np.moveaxis(xr5, 3, -1).reshape(m_, -1, S))
+    xi_ = np.ascontiguousarray(np.moveaxis(xi5, 3, -1).reshape(m_, -1, S))
     ur = yrT @ xr - yiT @ xi_  # (m, S_y, S_x)
     ui = yrT @ xi_ + yiT @ xr
     return _pixel_centroid(ur, ui, st, sensor, sub)
+
+
+def _coma_factors(ar, ai, coma, R: int, x5, y5):
+    """The field's factors (``_window_centroid``: x5, y5 = (Re, Im) (m, B, J, S, R+1)) with each sub-aperture's coma
+    to first order: its phase k W3, W3 = p^3 / 6 (W_xxx t_x^3 + 3 W_xxy t_x^2 t_y + 3 W_xyy t_x t_y^2 + W_yyy t_y^3)
+    less its mean slope's tilt (the sub-aperture's tilt is the plain mean slope, which holds the cubic's share
+    (W_xxx + W_xyy) p^2 / 24 in s_x), so exp(i k W3) ~ 1 + i k W3 (|k W3| <= ~0.01 rad on the co-designed lens), each
+    monomial a shift of the series' moment index. coma (m, B, 4) = k p^3 / 6 (W_xxx, W_xxy, W_xyy, W_yyy); ar, ai
+    (m, B, S, 2, >= R + 4) the raw moments M_r of x and y. The pure-x and pure-y terms go into slot 0's x and y
+    factors (their product's second order, (k W3)^2, is dropped); t_x^2 t_y and t_x t_y^2 take two new slots."""
+    c30, c21, c12, c03 = (coma[:, :, i, None, None] for i in range(4))  # (m, B, 1, 1)
+
+    def mom(part, ax, j):  # M_(r+j), r = 0 .. R: (m, B, S, R+1)
+        return part[:, :, :, ax, j:j + R + 1]
+
+    def px(part):  # W_xxx (t_x^3 - t_x / 4) - 3 W_xyy t_x / 12: slot 0's x factor, times i
+        return c30 * (mom(part, 0, 3) - 0.25 * mom(part, 0, 1)) - 0.25 * c12 * mom(part, 0, 1)
+
+    def py(part):
+        return c03 * (mom(part, 1, 3) - 0.25 * mom(part, 1, 1)) - 0.25 * c21 * mom(part, 1, 1)
+
+    (xr, xi), (yr, yi) = x5, y5
+    x0 = (xr[:, :, 0] - px(ai), xi[:, :, 0] + px(ar))  # (a + i b) i = -b + i a
+    y0 = (yr[:, :, 0] - py(ai), yi[:, :, 0] + py(ar))
+    xs = [(mom(ar, 0, 2), mom(ai, 0, 2)), (mom(ar, 0, 1), mom(ai, 0, 1))]  # 3 W_xxy t_x^2 t_y, 3 W_xyy t_x t_y^2
+    ys = [(-3 * c21 * mom(ai, 1, 1), 3 * c21 * mom(ar, 1, 1)), (-3 * c12 * mom(ai, 1, 2), 3 * c12 * mom(ar, 1, 2))]
+
+    def slots(old, first, extra, part):
+        return np.concatenate([first[part][:, :, None], old[part][:, :, 1:]] + [e[part][:, :, None] for e in extra],
+                              axis=2)
+
+    return ((slots(x5, x0, xs, 0), slots(x5, x0, xs, 1)), (slots(y5, y0, ys, 0), slots(y5, y0, ys, 1)))
 
 
 def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sensor, sub: int) -> np.ndarray:
@@ -871,6 +903,15 @@ def ln_i_curvature(g: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: f
     return np.where(np.abs(np.real(h)) > lim, np.sign(np.real(h)) * lim, h)
 
 
+def third_derivatives(K: np.ndarray, lit: np.ndarray, axis_nb: np.ndarray, pitch: float) -> np.ndarray:
+    """(..., L, 4) the wavefront's third derivatives (W_xxx, W_xxy, W_xyy, W_yyy) (1/mm^2) at the lit lenslets from
+    their slope gradients K (..., L, 2, 2) (d s_i / d x_j): ``axis_derivative``s, W_xyy = d K_yy / dx = d K_xy / dy
+    and W_xxy = d K_xx / dy = d K_xy / dx, each pair averaged. Linear in K."""
+    v = np.stack([K[..., 0, 0], K[..., 1, 1], 0.5 * (K[..., 0, 1] + K[..., 1, 0])])  # (3, ..., L): xx, yy, xy
+    dx, dy = (axis_derivative(v, lit, axis_nb, pitch, ax) for ax in (0, 1))
+    return np.stack([dx[0], 0.5 * (dy[0] + dx[2]), 0.5 * (dx[1] + dy[2]), dy[1]], axis=-1)
+
+
 def cubic_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: np.ndarray, axis_nb: np.ndarray,
                  pitch: float, gains: tuple[float, float]) -> np.ndarray:
     """Correction (..., L, 2) to the lenslets' plain mean slopes for the window's view of their wavefront's third
@@ -885,12 +926,8 @@ def cubic_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: n
     if (g_d == 1.0 and g_c == 1.0) or np.any(weights @ offsets**2 == 0):  # the complete spot, or the centre rule
         return np.zeros(sq.shape[:-2] + (2,), dtype=sq.dtype)
     lit = np.all(np.real(wi) > 0, axis=-1)
-    K = _slope_gradient(sq, offsets, weights, pitch)
-    v = np.stack([K[..., 0, 0], K[..., 1, 1], 0.5 * (K[..., 0, 1] + K[..., 1, 0])])  # (3, ..., L): xx, yy, xy
-    dx, dy = (axis_derivative(v, lit, axis_nb, pitch, ax) for ax in (0, 1))
-    w_xxx, w_yyy = dx[0], dy[1]
-    w_xyy = 0.5 * (dx[1] + dy[2])
-    w_xxy = 0.5 * (dy[0] + dx[2])
+    w_xxx, w_xxy, w_xyy, w_yyy = np.moveaxis(
+        third_derivatives(_slope_gradient(sq, offsets, weights, pitch), lit, axis_nb, pitch), -1, 0)
     c = pitch * pitch / 24.0
     return -c * np.stack([(1 - g_d) * w_xxx + (1 - g_c) * w_xyy, (1 - g_d) * w_yyy + (1 - g_c) * w_xxy], axis=-1)
 
@@ -934,6 +971,8 @@ def _cell_block(rows: np.ndarray, cells: dict, neighbours: np.ndarray, lit_centr
              "dlt": 0.25 * p * p * other("h"), "pe": pe}
     if exact:  # the propagation's non-paraxial part (``_rs_terms``)
         block.update(rs_c=f * s0 - pe, rs_star=f * sb)
+    if "w3" in cells:  # each sub-aperture's coma: k p^3 / 6 (W_xxx, W_xxy, W_xyy, W_yyy) (``_coma_factors``)
+        block["coma"] = (k * p**3 / 6.0) * other("w3")
     return block
 
 
@@ -1011,12 +1050,13 @@ def cell_crosstalk_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, w
     # ln_a is half the rule's mean of ln I, the cell's mean: the centre's is lower by its curvature's share
     ln_a = ln_a - 0.25 * p * p * np.einsum("k,...k->...", weights @ offsets**2, h)
     W, comp = cell_pistons(tilt, K, lit, axis_nb, p)
-    cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit, "W": W, "comp": comp}
+    cells = {"tilt": tilt, "K": K, "g": g, "h": h, "ln_a": ln_a, "lit": lit, "W": W, "comp": comp,
+             "w3": third_derivatives(K, lit, axis_nb, p)}
     s = tilt[..., :n, :]
     spot = lit_centres[:n] + f * s
     ref = cell_reference_shift(sensor, wavelength_nm, lit_centres, neighbours)
     # the tracking rule's first window: on the reference spot plus f times the slope (``TRACKING_ITERATIONS``)
     d, st = cell_shift(spot, cells, lit_centres, neighbours, sensor, wavelength_nm, windows=windows,
                        return_windows=True, start=spot + ref)
-    out = s + (d - ref) / f  # ForwardModel adds the window's view of the cubic (``cubic_slopes``), as to every model
+    out = s + (d - ref) / f  # each window sees its lenslets' cubic in the kernel: no ``cubic_slopes`` on top
     return (out, st) if return_windows else out

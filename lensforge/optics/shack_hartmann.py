@@ -357,7 +357,10 @@ class ForwardModel:
 
     def _cubic(self, sq, wi) -> np.ndarray:
         """(..., L, 2) the window's view of each traced lenslet's wavefront third derivatives (``centroid.cubic_slopes``).
-        Linear in sq: along directions dsq (..., d, L, q, 2) with wi (..., 1, L, q) it gives their derivatives."""
+        Linear in sq: along directions dsq (..., d, L, q, 2) with wi (..., 1, L, q) it gives their derivatives.
+        None with 'cells': its kernel renders every lenslet's coma in the window (``centroid._coma_factors``)."""
+        if self._cells:
+            return np.zeros(sq.shape[:-2] + (2,), dtype=sq.dtype)
         return cubic_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.axis_neighbours,
                             self.bench.sensor.pitch_mm, self.cubic_gain)
 
