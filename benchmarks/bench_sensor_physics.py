@@ -23,9 +23,10 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
      ... --estimate-mc N [--pupil 0.5] [--zernike-order 3] [--seed 0]: pose estimates of N noisy draws measured by
          'cells' at one pose (by default a small pupil: 'cells' costs seconds a pose), by the 'cells' estimator and
          the own-centroid one: RMSE / CRLB per DOF, NEES, bias (the estimate study, old against new)
-     ... --spheres [--design D] [--radii 1e9,100,-100] [--beam-offset 0,3]: analytic spherical waves (R = +-20
-         ... 100 mm, uniform and Gaussian beam, optionally off-centre) through the physical reference against the
-         fast models, no lens (what the cross-talk kernel misses, isolated)
+     ... --spheres [--design D] [--radii 1e9,100,-100] [--beam-offset 0,3] [--tilt 30,0] [--hessian 0,-10.7,0]:
+         analytic spherical waves (R = +-20 ... 100 mm, uniform and Gaussian beam, optionally off-centre, a tilt and
+         a quadratic added; --hessian alone: that quadratic, e.g. a saddle) through the physical reference against
+         the fast models, no lens (what the cross-talk kernel misses, isolated)
 
 Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
 extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
@@ -436,10 +437,11 @@ def round_parts(lens_name: str = "polynomial", n_poses: int = 2, spp: int = 4, m
 
 
 def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin: int = 5,
-            design: str | None = None, beam_offset_mm=(0.0, 0.0)) -> dict:
+            design: str | None = None, beam_offset_mm=(0.0, 0.0), tilt=(0.0, 0.0), hessian=None) -> dict:
     """Physical reference minus fast model (sigma per mode) for spherical waves converging to R mm after
-    the lenslets (R < 0 diverging), uniform or with the bench's Gaussian beam (centred at beam_offset_mm: an
-    irradiance gradient across the pupil), over the bench's pupil (the design file's bench, else the default)."""
+    the lenslets (R < 0 diverging; None: no sphere), uniform or with the bench's Gaussian beam (centred at
+    beam_offset_mm: an irradiance gradient across the pupil), over the bench's pupil (the design file's bench, else
+    the default); tilt (tan) and hessian (2, 2) 1/mm (a saddle: the cross curvature alone) added to each wave."""
     from lensforge.optics.centroid import cell_crosstalk_slopes, centroid_slopes, crosstalk_slopes, lit_lenslets
     from lensforge.verification.physical_sensor import analytic_wave_quadratures, field_slopes, plane_field
 
@@ -460,7 +462,7 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                     X = lit[:, None, :] + p * off[None]
                 else:
                     X = c[:, None, :] + p * off[None]
-                sq, irr = analytic_wave_quadratures(bench, X, R, gauss, beam_offset_mm)
+                sq, irr = analytic_wave_quadratures(bench, X, R, gauss, beam_offset_mm, tilt, hessian)
                 wi = w * irr
                 if xt == "cells":
                     row[xt] = m.pupil.fit(cell_crosstalk_slopes(sq, wi, off, w, lit, nbrs, bench.sensor,
@@ -471,16 +473,19 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                     s = crosstalk_slopes(s[None], sq[None], wi[None], off, w, c, bench.sensor, bench.laser.wavelength_nm)[0]
                 row[xt] = m.pupil.fit(s)
             cfg = PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)
-            zp = m.pupil.fit(field_slopes(plane_field(bench, cfg, c, curvature_mm=R, gaussian=gauss,
-                                                      beam_offset_mm=beam_offset_mm), bench, cfg, c)[0])
+            zp = m.pupil.fit(field_slopes(plane_field(bench, cfg, c, tilt, gauss, R, beam_offset_mm, hessian),
+                                          bench, cfg, c)[0])
             sig = np.sqrt(np.diag(m.noise_cov))
             j3, j4 = list(m.modes).index(3), list(m.modes).index(4)
             res = {k: ((zp - z) / sig) for k, z in row.items()}
-            key = f"{'gaussian' if gauss else 'uniform'}/R{R:+.0f}"
-            out[key] = {k: {"z3_sigma": float(v[j3]), "z4_sigma": float(v[j4]), "max_sigma": float(np.abs(v).max())}
-                        for k, v in res.items()}
-            print(f"{key:16s} " + " | ".join(f"{k}: Z3 {v[j3]:6.2f} Z4 {v[j4]:7.2f} max {np.abs(v).max():6.2f} sigma"
-                                             for k, v in res.items()), flush=True)
+            key = f"{'gaussian' if gauss else 'uniform'}/" + ("plane" if R is None else f"R{R:+.0f}")
+            out[key] = {k: {"z3_sigma": float(v[j3]), "z4_sigma": float(v[j4]), "max_sigma": float(np.abs(v).max()),
+                            "sigma": v.tolist()} for k, v in res.items()}
+            print(f"{key:16s} " + " | ".join(f"{k}: Z3 {v[j3]:6.2f} Z4 {v[j4]:7.2f} max {np.abs(v).max():6.2f} "
+                                             f"(Z{m.modes[np.argmax(np.abs(v))]})" for k, v in res.items()), flush=True)
+            if len(m.modes) and hessian is not None:  # a saddle's residual is not only Z3/Z4: every mode
+                for k, v in res.items():
+                    print(f"    {k:10s} " + " ".join(f"Z{j}:{x:+.2f}" for j, x in zip(m.modes, v)), flush=True)
     return out
 
 
@@ -563,8 +568,11 @@ def main(argv=None):
     ap.add_argument("--pupil", type=float, default=0.5, help="--estimate-mc: the pupil radius, mm")
     ap.add_argument("--zernike-order", type=int, default=3, help="--estimate-mc: the Zernike order (the bench's: 4)")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
-    ap.add_argument("--radii", type=_floats(), default=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), help="--spheres: the waves' radii, mm (a huge one: "
-                    "a plane wave)")
+    ap.add_argument("--radii", type=_floats(), default=None, help="--spheres: the waves' radii, mm (a huge one: "
+                    "a plane wave; default 20,30,-30,60,100,-100, none with --hessian)")
+    ap.add_argument("--tilt", type=_floats(2), default=(0.0, 0.0), help="--spheres: a tilt x,y (mrad) added to each wave")
+    ap.add_argument("--hessian", type=_floats(3), default=None, help="--spheres: a quadratic xx,xy,yy (mrad/mm) "
+                    "added to each wave (0,-10.7,0: the default design's cross curvature alone, a saddle)")
     ap.add_argument("--beam-offset", type=_floats(2), default=(0.0, 0.0), help="--spheres: the Gaussian beam's centre x,y on the lenslets, "
                     "mm (an irradiance gradient across the pupil)")
     a = ap.parse_args(argv)
@@ -574,6 +582,8 @@ def main(argv=None):
         ap.error("--estimate-mc: a number of draws >= 1; --pupil: a radius in (0, 5] mm; --zernike-order: 1 to 10")
     if a.cut_scan and not all(0 <= c < 1 for c in (*a.cuts, a.cut_ref)):
         ap.error("--cuts/--cut-ref: a noise cut is a fraction of the spot peak, 0 <= cut < 1")
+    if a.radii is None:
+        a.radii = (None,) if a.hessian is not None else (20.0, 30.0, -30.0, 60.0, 100.0, -100.0)
     if a.spheres and any(r == 0 for r in a.radii):
         ap.error("--radii: a radius of 0 is no wave (a huge one is a plane wave)")
     if a.cost:
@@ -582,7 +592,9 @@ def main(argv=None):
     ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
     studies = [  # (chosen, the study): the first chosen runs, its record goes to --json
         (a.spheres, lambda: spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design,
-                                    beam_offset_mm=a.beam_offset)),
+                                    beam_offset_mm=a.beam_offset, tilt=tuple(1e-3 * np.asarray(a.tilt)),
+                                    hessian=None if a.hessian is None else 1e-3 * np.array(
+                                        [[a.hessian[0], a.hessian[1]], [a.hessian[1], a.hessian[2]]]))),
         (a.estimate_mc, lambda: estimate_mc(a.estimate_mc, a.pupil, a.seed, a.zernike_order)),
         (a.cut_scan, lambda: cut_scan(a.lenses.split(",")[0], a.poses, a.cuts, a.cut_ref, a.spp, a.margin)),
         (a.round_parts, lambda: round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)),

@@ -918,10 +918,9 @@ def cubic_slopes(sq: np.ndarray, wi: np.ndarray, offsets: np.ndarray, weights: n
     derivatives: -(1 - g_d) W_xxx p^2 / 24 - (1 - g_c) W_xyy p^2 / 24 in s_x (W_yyy and W_xxy in s_y), gains from
     ``cubic_gain``; sq (..., L, q, 2) and wi (..., L, q) the quadratures of L lenslets, axis_nb (L, 2, 2) their
     ``axis_neighbours``. The 2 x 2 rule's mean slope holds the cubic's share exactly, but a model that renders it
-    as a tilt (the own centroid, 'cells') sees it with gain 1, where a pixel window sees ~0.9 of it. The third
-    derivatives are ``axis_derivative``s of the lit lenslets' slope gradients K (d s_i / d x_j); W_xyy = d K_yy / dx
-    = d K_xy / dy, the two averaged (and alike for W_xxy). Linear in sq: along a direction dsq (with the same wi)
-    it is its own derivative."""
+    as a tilt (the own centroid, 'neighbours') sees it with gain 1, where a pixel window sees ~0.9 of it ('cells'
+    renders the coma in its kernel instead, ``_coma_factors``). The third derivatives: ``third_derivatives``.
+    Linear in sq: along a direction dsq (with the same wi) it is its own derivative."""
     g_d, g_c = gains
     if (g_d == 1.0 and g_c == 1.0) or np.any(weights @ offsets**2 == 0):  # the complete spot, or the centre rule
         return np.zeros(sq.shape[:-2] + (2,), dtype=sq.dtype)

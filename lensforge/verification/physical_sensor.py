@@ -536,45 +536,66 @@ def _lit_cells(xs: np.ndarray, ys: np.ndarray, cx: np.ndarray, cy: np.ndarray, m
     return lit[np.ix_(iy, ix)].astype(float)
 
 
+def _analytic_wave(X: np.ndarray, Y: np.ndarray, slope, curvature_mm: float | None, hessian) -> tuple:
+    """(optical path S (...) mm, direction cosines (..., 2)) on the lenslet plane of a plane wave of tan slope
+    ``slope``, plus a sphere converging to ``curvature_mm`` after the plane (< 0: diverging), plus the quadratic
+    X^T H X / 2 (``hessian`` H (2, 2) 1/mm, symmetric: a saddle H_xy isolates the cross curvature)."""
+    tx, ty = slope
+    nrm = np.sqrt(1 + tx * tx + ty * ty)
+    S = (tx * X + ty * Y) / nrm
+    gx, gy = np.full(X.shape, tx / nrm), np.full(X.shape, ty / nrm)
+    if curvature_mm is not None:
+        R = float(curvature_mm)
+        rr = np.sqrt(X**2 + Y**2 + R * R)
+        S = S - np.sign(R) * (rr - abs(R))
+        gx, gy = gx - np.sign(R) * X / rr, gy - np.sign(R) * Y / rr
+    if hessian is not None:
+        H = np.asarray(hessian, float)
+        S = S + 0.5 * (H[0, 0] * X * X + (H[0, 1] + H[1, 0]) * X * Y + H[1, 1] * Y * Y)
+        gx = gx + H[0, 0] * X + 0.5 * (H[0, 1] + H[1, 0]) * Y
+        gy = gy + H[1, 1] * Y + 0.5 * (H[0, 1] + H[1, 0]) * X
+    return S, np.stack([gx, gy], axis=-1)
+
+
+def _tan(cosines: np.ndarray) -> np.ndarray:
+    """tan slopes (..., 2) of rays with direction cosines (..., 2)."""
+    return cosines / np.sqrt(1.0 - (cosines**2).sum(-1, keepdims=True))
+
+
 def plane_field(bench: Bench, cfg: PhysicalSensor, centres: np.ndarray, slope=(0.0, 0.0), gaussian: bool = False,
-                curvature_mm: float | None = None, beam_offset_mm=(0.0, 0.0)) -> MlaField:
+                curvature_mm: float | None = None, beam_offset_mm=(0.0, 0.0), hessian=None) -> MlaField:
     """An analytic field on the lit box of the pupil lenslets ``centres``: a plane wave of slope (tan) ``slope``
     (uniform, or the bench's Gaussian beam when ``gaussian``, centred at ``beam_offset_mm`` (x, y) on the
     lenslet plane), or with ``curvature_mm`` = R a spherical wave converging to a point R (mm) after the lenslet
-    plane (R < 0: diverging from a point -R before it)."""
+    plane (R < 0: diverging from a point -R before it), and with ``hessian`` H (2, 2) (1/mm) the quadratic
+    X^T H X / 2 added to its path (``_analytic_wave``)."""
     sensor = bench.sensor
     lam = bench.laser.wavelength_nm * 1e-6
     cx, cy = lit_box(sensor, cfg, centres)
     x = _grid(sensor, cfg, cx, cy)
     bx, by = _box_slices(x, sensor, cx, cy)
-    tx, ty = slope
-    nrm = np.sqrt(1 + tx * tx + ty * ty)
     E = np.zeros((len(x), len(x)), complex)
     box = E[by, bx]  # a view, filled a chunk of rows at a time
     for c in _row_chunks(len(x[by])):
         X, Y = np.meshgrid(x[bx], x[by][c], indexing="xy")
-        S = (tx * X + ty * Y) / nrm
-        if curvature_mm is not None:
-            R = float(curvature_mm)
-            S = S - np.sign(R) * (np.sqrt(X**2 + Y**2 + R * R) - abs(R))
+        S = _analytic_wave(X, Y, slope, curvature_mm, hessian)[0]
         amp = np.ones_like(X)
         if gaussian:
             w = 0.5 * bench.laser.beam_diameter_mm
             amp = np.exp(-((X - beam_offset_mm[0]) ** 2 + (Y - beam_offset_mm[1]) ** 2) / (w * w))
         box[c] = amp * np.exp(2j * np.pi / lam * S)
-    exp = np.broadcast_to(np.array([tx, ty]), centres.shape).copy()
-    if curvature_mm is not None:
-        exp = exp - centres / curvature_mm
-    return MlaField(x, E, exp)
+    c = np.asarray(centres, float)
+    return MlaField(x, E, _tan(_analytic_wave(c[:, 0], c[:, 1], slope, curvature_mm, hessian)[1]))
 
 
 def analytic_wave_quadratures(bench: Bench, X: np.ndarray, curvature_mm: float | None = None,
-                              gaussian: bool = False, beam_offset_mm=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
-    """The fast models' inputs for ``plane_field``'s wave at normal incidence: slopes (tan) (..., 2) and relative
-    irradiance (...) at the points X (..., 2) mm (a sphere's tan slopes are exactly -X / R; the Gaussian beam of
-    ``plane_field`` centred at beam_offset_mm, or uniform)."""
+                              gaussian: bool = False, beam_offset_mm=(0.0, 0.0), slope=(0.0, 0.0),
+                              hessian=None) -> tuple[np.ndarray, np.ndarray]:
+    """The fast models' inputs for ``plane_field``'s wave: slopes (tan, from the path's exact direction cosines)
+    (..., 2) and relative irradiance (...) at the points X (..., 2) mm (a sphere's tan slopes are exactly -X / R;
+    the Gaussian beam of ``plane_field`` centred at beam_offset_mm, or uniform)."""
     X = np.asarray(X, float)
-    sq = -X / curvature_mm if curvature_mm is not None else np.zeros_like(X)
+    sq = _tan(_analytic_wave(X[..., 0], X[..., 1], slope, curvature_mm, hessian)[1])
     if not gaussian:
         return sq, np.ones(X.shape[:-1])
     w = 0.5 * bench.laser.beam_diameter_mm
