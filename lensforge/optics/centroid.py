@@ -503,32 +503,39 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     else:
         x5 = (ar[:, :, None, :, 0, :R + 1], ai[:, :, None, :, 0, :R + 1])
         y5 = (ar[:, :, None, :, 1, :R + 1], ai[:, :, None, :, 1, :R + 1])
+    slots = [(x5, y5)]
     if coma:
-        x5, y5 = _coma_factors(ar, ai, block["coma"], R, x5, y5)
+        (dx, dy), extra = _coma_factors(ar, ai, block["coma"], R)
+        for (fr, fi), (dr, di) in zip((x5, y5), (dx, dy)):  # slot 0 in place: ar, ai are not read again
+            fr[:, :, 0] += dr
+            fi[:, :, 0] += di
+        slots.append(extra)
     # y factor carries C_b (i a)^r / r!: its real and imaginary parts (real arithmetic for the complex step)
     wr = cr[..., None] * ir_re - ci[..., None] * ir_im  # C_b i^r, (m, B, R+1)
     wi = cr[..., None] * ir_im + ci[..., None] * ir_re
     wr, wi = (wr * pw)[:, :, None, None, :], (wi * pw)[:, :, None, None, :]
-    # stacks (m, S_y, B J (R+1)) @ (m, B J (R+1), S_x), contiguous: numpy's matmul takes its fast path only then
-    (xr5, xi5), (yr5, yi5) = x5, y5
-    m_, S = xr5.shape[0], xr5.shape[3]
-    yrT = np.ascontiguousarray(np.moveaxis(wr * yr5 - wi * yi5, 3, 1).reshape(m_, S, -1))
-    yiT = np.ascontiguousarray(np.moveaxis(wr * yi5 + wi * yr5, 3, 1).reshape(m_, S, -1))
-    xr = np.ascontiguousarray(np.moveaxis(xr5, 3, -1).reshape(m_, -1, S))
-    xi_ = np.ascontiguousarray(np.moveaxis(xi5, 3, -1).reshape(m_, -1, S))
-    ur = yrT @ xr - yiT @ xi_  # (m, S_y, S_x)
-    ui = yrT @ xi_ + yiT @ xr
+    ur = ui = 0.0
+    for (xr5, xi5), (yr5, yi5) in slots:
+        # stacks (m, S_y, B J (R+1)) @ (m, B J (R+1), S_x), contiguous: numpy's matmul takes its fast path only then
+        m_, S = xr5.shape[0], xr5.shape[3]
+        yrT = np.ascontiguousarray(np.moveaxis(wr * yr5 - wi * yi5, 3, 1).reshape(m_, S, -1))
+        yiT = np.ascontiguousarray(np.moveaxis(wr * yi5 + wi * yr5, 3, 1).reshape(m_, S, -1))
+        xr = np.ascontiguousarray(np.moveaxis(xr5, 3, -1).reshape(m_, -1, S))
+        xi_ = np.ascontiguousarray(np.moveaxis(xi5, 3, -1).reshape(m_, -1, S))
+        ur = ur + (yrT @ xr - yiT @ xi_)  # (m, S_y, S_x)
+        ui = ui + (yrT @ xi_ + yiT @ xr)
     return _pixel_centroid(ur, ui, st, sensor, sub)
 
 
-def _coma_factors(ar, ai, coma, R: int, x5, y5):
-    """The field's factors (``_window_centroid``: x5, y5 = (Re, Im) (m, B, J, S, R+1)) with each sub-aperture's coma
-    to first order: its phase k W3, W3 = p^3 / 6 (W_xxx t_x^3 + 3 W_xxy t_x^2 t_y + 3 W_xyy t_x t_y^2 + W_yyy t_y^3)
-    less its mean slope's tilt (the sub-aperture's tilt is the plain mean slope, which holds the cubic's share
-    (W_xxx + W_xyy) p^2 / 24 in s_x), so exp(i k W3) ~ 1 + i k W3 (|k W3| <= ~0.01 rad on the co-designed lens), each
-    monomial a shift of the series' moment index. coma (m, B, 4) = k p^3 / 6 (W_xxx, W_xxy, W_xyy, W_yyy); ar, ai
-    (m, B, S, 2, >= R + 4) the raw moments M_r of x and y. The pure-x and pure-y terms go into slot 0's x and y
-    factors (their product's second order, (k W3)^2, is dropped); t_x^2 t_y and t_x t_y^2 take two new slots."""
+def _coma_factors(ar, ai, coma, R: int):
+    """Each sub-aperture's coma in the field's factors (``_window_centroid``), to first order: its phase k W3,
+    W3 = p^3 / 6 (W_xxx t_x^3 + 3 W_xxy t_x^2 t_y + 3 W_xyy t_x t_y^2 + W_yyy t_y^3) less its mean slope's tilt (the
+    sub-aperture's tilt is the plain mean slope, which holds the cubic's share (W_xxx + W_xyy) p^2 / 24 in s_x), so
+    exp(i k W3) ~ 1 + i k W3 (|k W3| <= ~0.01 rad on the co-designed lens), each monomial a shift of the series'
+    moment index. coma (m, B, 4) = k p^3 / 6 (W_xxx, W_xxy, W_xyy, W_yyy); ar, ai (m, B, S, 2, >= R + 4) the raw
+    moments M_r of x and y. Returns ((dx, dy): what the pure-x and pure-y terms add to slot 0's x and y factors
+    (their product's second order, (k W3)^2, is dropped), each (Re, Im) (m, B, S, R+1); (x, y): two more slots for
+    t_x^2 t_y and t_x t_y^2, each (Re, Im) (m, B, 2, S, R+1))."""
     c30, c21, c12, c03 = (coma[:, :, i, None, None] for i in range(4))  # (m, B, 1, 1)
 
     def mom(part, ax, j):  # M_(r+j), r = 0 .. R: (m, B, S, R+1)
@@ -540,17 +547,11 @@ def _coma_factors(ar, ai, coma, R: int, x5, y5):
     def py(part):
         return c03 * (mom(part, 1, 3) - 0.25 * mom(part, 1, 1)) - 0.25 * c21 * mom(part, 1, 1)
 
-    (xr, xi), (yr, yi) = x5, y5
-    x0 = (xr[:, :, 0] - px(ai), xi[:, :, 0] + px(ar))  # (a + i b) i = -b + i a
-    y0 = (yr[:, :, 0] - py(ai), yi[:, :, 0] + py(ar))
-    xs = [(mom(ar, 0, 2), mom(ai, 0, 2)), (mom(ar, 0, 1), mom(ai, 0, 1))]  # 3 W_xxy t_x^2 t_y, 3 W_xyy t_x t_y^2
-    ys = [(-3 * c21 * mom(ai, 1, 1), 3 * c21 * mom(ar, 1, 1)), (-3 * c12 * mom(ai, 1, 2), 3 * c12 * mom(ar, 1, 2))]
-
-    def slots(old, first, extra, part):
-        return np.concatenate([first[part][:, :, None], old[part][:, :, 1:]] + [e[part][:, :, None] for e in extra],
-                              axis=2)
-
-    return ((slots(x5, x0, xs, 0), slots(x5, x0, xs, 1)), (slots(y5, y0, ys, 0), slots(y5, y0, ys, 1)))
+    dx, dy = (-px(ai), px(ar)), (-py(ai), py(ar))  # (a + i b) i = -b + i a
+    x = tuple(np.stack([mom(part, 0, 2), mom(part, 0, 1)], axis=2) for part in (ar, ai))  # 3 W_xxy t_x^2 t_y, ...
+    y = (np.stack([-3 * c21 * mom(ai, 1, 1), -3 * c12 * mom(ai, 1, 2)], axis=2),  # ... 3 W_xyy t_x t_y^2
+         np.stack([3 * c21 * mom(ar, 1, 1), 3 * c12 * mom(ar, 1, 2)], axis=2))
+    return (dx, dy), (x, y)
 
 
 def _pixel_centroid(ur: np.ndarray, ui: np.ndarray, st: np.ndarray, sensor: Sensor, sub: int) -> np.ndarray:
