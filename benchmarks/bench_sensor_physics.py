@@ -452,6 +452,15 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                           f"({0.5 * bench.laser.beam_diameter_mm:g} mm) of the sensor axis, or the pupil goes dark")
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
+    lim = 1e-3 * bench.sensor.validated_slope_mrad
+    for R in radii:  # the waves the sensor can take over its lit lenslets, before any work
+        with np.errstate(invalid="ignore"):
+            sq = analytic_wave_quadratures(bench, lit_lenslets(bench.sensor, c)[0], R, False, (0.0, 0.0), tilt,
+                                           hessian)[0]
+        if not np.all(np.abs(sq) <= lim):
+            raise ConfigError(f"--radii/--tilt/--hessian: the wave's slopes over the lit lenslets exceed the "
+                              f"sensor's validated {bench.sensor.validated_slope_mrad:g} mrad (radius {R}); "
+                              "give a gentler wave")
     out = {}
     for gauss in (False, True):
         for R in radii:
