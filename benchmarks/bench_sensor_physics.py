@@ -27,6 +27,9 @@ Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_sensor_physics.py [--design 
          analytic spherical waves (R = +-20 ... 100 mm, uniform and Gaussian beam, optionally off-centre, a tilt and
          a quadratic added; --hessian alone: that quadratic, e.g. a saddle) through the physical reference against
          the fast models, no lens (what the cross-talk kernel misses, isolated)
+     ... --gradient-coupling --hessian 0,-10.7,0 --beam-offset 0,2 [--beam-scale 0.5] [--pupil 0.4] [--ring 4]
+         [--margin 5] [--spp 4] [--design D]: the slopes' part odd in the beam's offset (the curvature weighted by
+         the irradiance gradient), physical reference against 'cells' (a block of --ring rings) and the own window
 
 Per lens (the design file's and paper lenses) at nominal and at the calibration plan's most
 extreme poses (largest |pose| scaled by the bench's pose scales, ``plan`` with 12 poses, seed 0):
@@ -436,6 +439,19 @@ def round_parts(lens_name: str = "polynomial", n_poses: int = 2, spp: int = 4, m
     return {"modes": model.modes.tolist(), "rows": rows}
 
 
+def _check_wave(bench, lit: np.ndarray, radius, tilt, hessian) -> None:
+    """ConfigError unless the analytic wave's slopes over the lit lenslets (L, 2) stay within the sensor's
+    validated range (a steeper one would make NaN slopes or a reference the sampling refuses, after the work)."""
+    from lensforge.verification.physical_sensor import analytic_wave_quadratures
+
+    lim = 1e-3 * bench.sensor.validated_slope_mrad
+    with np.errstate(invalid="ignore"):
+        sq = analytic_wave_quadratures(bench, lit, radius, False, (0.0, 0.0), tilt, hessian)[0]
+    if not np.all(np.abs(sq) <= lim):
+        raise ConfigError(f"--radii/--tilt/--hessian: the wave's slopes over the lit lenslets exceed the sensor's "
+                          f"validated {bench.sensor.validated_slope_mrad:g} mrad (radius {radius}); give a gentler wave")
+
+
 def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin: int = 5,
             design: str | None = None, beam_offset_mm=(0.0, 0.0), tilt=(0.0, 0.0), hessian=None) -> dict:
     """Physical reference minus fast model (sigma per mode) for spherical waves converging to R mm after
@@ -452,15 +468,8 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                           f"({0.5 * bench.laser.beam_diameter_mm:g} mm) of the sensor axis, or the pupil goes dark")
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
-    lim = 1e-3 * bench.sensor.validated_slope_mrad
     for R in radii:  # the waves the sensor can take over its lit lenslets, before any work
-        with np.errstate(invalid="ignore"):
-            sq = analytic_wave_quadratures(bench, lit_lenslets(bench.sensor, c)[0], R, False, (0.0, 0.0), tilt,
-                                           hessian)[0]
-        if not np.all(np.abs(sq) <= lim):
-            raise ConfigError(f"--radii/--tilt/--hessian: the wave's slopes over the lit lenslets exceed the "
-                              f"sensor's validated {bench.sensor.validated_slope_mrad:g} mrad (radius {R}); "
-                              "give a gentler wave")
+        _check_wave(bench, lit_lenslets(bench.sensor, c)[0], R, tilt, hessian)
     out = {}
     for gauss in (False, True):
         for R in radii:
@@ -495,6 +504,56 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
             if len(m.modes) and hessian is not None:  # a saddle's residual is not only Z3/Z4: every mode
                 for k, v in res.items():
                     print(f"    {k:10s} " + " ".join(f"Z{j}:{x:+.2f}" for j, x in zip(m.modes, v)), flush=True)
+    return out
+
+
+def gradient_coupling(hessian, beam_offset_mm, beam_scale: float = 0.5, pupil_mm: float = 0.4, spp: int = 4,
+                      margin: int = 5, ring: int = 4, design: str | None = None) -> dict:
+    """How each model weights a quadratic wave's curvature by the beam's irradiance gradient: the slopes' part odd
+    in the Gaussian beam's offset (+-beam_offset_mm), averaged over a small pupil (pupil_mm radius, the beam's
+    diameter scaled by beam_scale: a steep gradient), in units of the complete spot's weighting f K g p^2 / 12
+    (K the wave's curvature coupling the offset's axis into the slope's, g the gradient of ln I at the centre).
+    The physical reference lights ``margin`` rings, 'cells' a block of ``ring`` rings (``lit_lenslets``)."""
+    from lensforge.optics.centroid import cell_crosstalk_slopes, centroid_slopes, lit_lenslets
+    from lensforge.verification.physical_sensor import analytic_wave_quadratures, field_slopes, plane_field
+
+    bench = load_design_lens(design)[1] if design else lf.Bench.default()
+    bench = bench.replace(sensor={"pupil_radius_mm": pupil_mm},
+                          laser={"beam_diameter_mm": bench.laser.beam_diameter_mm * beam_scale})
+    H = np.asarray(hessian, float)
+    bo = np.asarray(beam_offset_mm, float)
+    if not np.any(bo):
+        raise ConfigError("--beam-offset: the coupling needs an off-centre beam (an irradiance gradient)")
+    m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil and rule only
+    c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
+    lit, nbrs = lit_lenslets(bench.sensor, c, ring)
+    _check_wave(bench, lit, None, (0.0, 0.0), H)
+    g = 4.0 * bo / (0.5 * bench.laser.beam_diameter_mm) ** 2  # grad ln I at the centre, 1/mm
+    kg = H @ g  # the weighting's slope shift per unit p^2 / 12, each axis
+    if not np.any(kg):
+        raise ConfigError("--hessian/--beam-offset: the wave has no curvature along the beam's offset: nothing to weight")
+    cfg = PhysicalSensor(samples_per_pixel=spp, margin_lenslets=margin)
+    wl = bench.laser.wavelength_nm
+    runs = {}
+    for sgn in (1.0, -1.0):
+        b = tuple(sgn * bo)
+        sq, irr = analytic_wave_quadratures(bench, lit[:, None, :] + p * off[None], None, True, b, (0.0, 0.0), H)
+        n = len(c)
+        runs[sgn] = {"physical": field_slopes(plane_field(bench, cfg, c, (0.0, 0.0), True, None, b, H), bench, cfg,
+                                              c)[0],
+                     "cells": cell_crosstalk_slopes(sq, w * irr, off, w, lit, nbrs, bench.sensor, wl),
+                     "own window": centroid_slopes(sq[:n], (w * irr)[:n], off, w, m.window_gain),
+                     "complete spot": centroid_slopes(sq[:n], (w * irr)[:n], off, w, (1.0, 1.0))}
+    ax = int(np.argmax(np.abs(kg)))
+    unit = kg[ax] * p * p / 12
+    out = {"unit_urad": float(unit * 1e6), "axis": "xy"[ax]}
+    print(f"K {np.round(H * 1e3, 2).tolist()} mrad/mm, beam {bench.laser.beam_diameter_mm:g} mm at +-{bo.tolist()} mm, "
+          f"pupil {pupil_mm:g} mm ({len(c)} lenslets), reference {spp} samples/px and {margin} lit rings, 'cells' "
+          f"{ring} rings: the s_{'xy'[ax]} part odd in the offset over f K g p^2/12 = {unit * 1e6:.3f} urad", flush=True)
+    for name in runs[1.0]:
+        odd = 0.5 * (runs[1.0][name] - runs[-1.0][name])[:, ax] / unit
+        out[name] = {"mean": float(odd.mean()), "spread": float(odd.std())}
+        print(f"  {name:14s} {odd.mean():+.4f} (lenslets' spread {odd.std():.4f})", flush=True)
     return out
 
 
@@ -574,7 +633,7 @@ def main(argv=None):
     ap.add_argument("--cut-ref", type=float, default=0.05, help="--cut-scan: the reference cut")
     ap.add_argument("--estimate-mc", type=int, default=0, metavar="N",
                     help="Monte Carlo of N pose estimates on 'cells' data: 'cells' against the own-centroid estimator")
-    ap.add_argument("--pupil", type=float, default=0.5, help="--estimate-mc: the pupil radius, mm")
+    ap.add_argument("--pupil", type=float, default=0.5, help="--estimate-mc, --gradient-coupling: the pupil radius, mm")
     ap.add_argument("--zernike-order", type=int, default=3, help="--estimate-mc: the Zernike order (the bench's: 4)")
     ap.add_argument("--spheres", action="store_true", help="spherical waves: physical reference against the fast models")
     ap.add_argument("--radii", type=_floats(), default=None, help="--spheres: the waves' radii, mm (a huge one: "
@@ -583,7 +642,11 @@ def main(argv=None):
     ap.add_argument("--hessian", type=_floats(3), default=None, help="--spheres: a quadratic xx,xy,yy (mrad/mm) "
                     "added to each wave (0,-10.7,0: the default design's cross curvature alone, a saddle)")
     ap.add_argument("--beam-offset", type=_floats(2), default=(0.0, 0.0), help="--spheres: the Gaussian beam's centre x,y on the lenslets, "
-                    "mm (an irradiance gradient across the pupil)")
+                    "mm (an irradiance gradient across the pupil); --gradient-coupling: the offset, taken + and -")
+    ap.add_argument("--gradient-coupling", action="store_true", help="the part of the slopes odd in the beam's offset "
+                    "under --hessian, physical against 'cells' and the own window, on a small pupil (--pupil 0.4)")
+    ap.add_argument("--beam-scale", type=float, default=0.5, help="--gradient-coupling: the beam's diameter x this")
+    ap.add_argument("--ring", type=int, default=4, help="--gradient-coupling: 'cells'' block rings")
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
@@ -599,7 +662,12 @@ def main(argv=None):
         cost()
         return
     ct = None if a.calibration_tolerances == "none" else a.calibration_tolerances
+    if a.gradient_coupling and (a.hessian is None or not 0 < a.beam_scale <= 10 or not 1 <= a.ring <= 16):
+        ap.error("--gradient-coupling: needs --hessian xx,xy,yy; --beam-scale in (0, 10]; --ring 1 to 16")
     studies = [  # (chosen, the study): the first chosen runs, its record goes to --json
+        (a.gradient_coupling, lambda: gradient_coupling(
+            1e-3 * np.array([[a.hessian[0], a.hessian[1]], [a.hessian[1], a.hessian[2]]]), a.beam_offset,
+            a.beam_scale, a.pupil, a.spp, a.margin, a.ring, a.design)),
         (a.spheres, lambda: spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design,
                                     beam_offset_mm=a.beam_offset, tilt=tuple(1e-3 * np.asarray(a.tilt)),
                                     hessian=None if a.hessian is None else 1e-3 * np.array(
