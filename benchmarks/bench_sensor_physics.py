@@ -468,18 +468,15 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                           f"({0.5 * bench.laser.beam_diameter_mm:g} mm) of the sensor axis, or the pupil goes dark")
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil, rule and fit only: no lens is traced
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
+    lit, nbrs = lit_lenslets(bench.sensor, c)  # 'cells' traces every lit lenslet's own quadrature rays
     for R in radii:  # the waves the sensor can take over its lit lenslets, before any work
-        _check_wave(bench, lit_lenslets(bench.sensor, c)[0], R, tilt, hessian)
+        _check_wave(bench, lit, R, tilt, hessian)
     out = {}
     for gauss in (False, True):
         for R in radii:
             row = {}
             for xt in ("none", "neighbours", "cells"):
-                if xt == "cells":  # every lit lenslet's own quadrature rays
-                    lit, nbrs = lit_lenslets(bench.sensor, c)
-                    X = lit[:, None, :] + p * off[None]
-                else:
-                    X = c[:, None, :] + p * off[None]
+                X = (lit if xt == "cells" else c)[:, None, :] + p * off[None]
                 sq, irr = analytic_wave_quadratures(bench, X, R, gauss, beam_offset_mm, tilt, hessian)
                 wi = w * irr
                 if xt == "cells":

@@ -32,7 +32,8 @@ I = I_beam / |det d(X,Y)/d(u,v)| (flux conservation).
   The mean slope s_u also holds the wavefront's third derivatives' share, (W_xxx + W_xyy)
   p^2 / 24 in s_x: a coma within the sub-aperture, whose flared side the window cuts, so
   the window sees it with gains ``cubic_gain`` (0.896 direct, 0.948 cross at the defaults),
-  the third derivatives taken across neighbouring lenslets (``cubic_slopes``). On the
+  the third derivatives taken across neighbouring lenslets (``cubic_slopes``; the 'cells'
+  model renders that coma in its kernel instead, ``_coma_factors``). On the
   co-designed default lens (slopes to 100 mrad) it is Z3 2.0-2.5 sigma; the paper's lenses,
   < 0.05 sigma (tests/test_physical_optics.py).
 * threshold: a lenslet is used only when its mean irradiance sum_q w_q I_q is at

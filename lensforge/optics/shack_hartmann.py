@@ -247,7 +247,9 @@ class ForwardModel:
         off, w = quadrature_rule(bench.sensor.subaperture_quadrature) if quadrature is None else quadrature
         self.quad_offsets, self.quad_weights = off, w
         self.window_gain = window_gain(bench.sensor, bench.laser.wavelength_nm)
-        self.cubic_gain = cubic_gain(bench.sensor, bench.laser.wavelength_nm)
+        # the added coma term's gains (``_cubic``); (1, 1), no term, with 'cells', whose kernel renders every
+        # lenslet's coma in its window (``centroid._coma_factors``)
+        self.cubic_gain = (1.0, 1.0) if self._cells else cubic_gain(bench.sensor, bench.laser.wavelength_nm)
         # the traced lenslets: the pupil's, and with the 'cells' cross-talk model every lenslet lit within its
         # rings of the pupil (their fields reach the pupil's windows), the pupil's first (``lit_lenslets``)
         if self._cells:
@@ -358,9 +360,7 @@ class ForwardModel:
     def _cubic(self, sq, wi) -> np.ndarray:
         """(..., L, 2) the window's view of each traced lenslet's wavefront third derivatives (``centroid.cubic_slopes``).
         Linear in sq: along directions dsq (..., d, L, q, 2) with wi (..., 1, L, q) it gives their derivatives.
-        None with 'cells': its kernel renders every lenslet's coma in the window (``centroid._coma_factors``)."""
-        if self._cells:
-            return np.zeros(sq.shape[:-2] + (2,), dtype=sq.dtype)
+        Zero with 'cells' (its ``cubic_gain`` is (1, 1))."""
         return cubic_slopes(sq, wi, self.quad_offsets, self.quad_weights, self.axis_neighbours,
                             self.bench.sensor.pitch_mm, self.cubic_gain)
 
