@@ -521,6 +521,11 @@ def gradient_coupling(hessian, beam_offset_mm, beam_scale: float = 0.5, pupil_mm
     bo = np.asarray(beam_offset_mm, float)
     if not np.any(bo):
         raise ConfigError("--beam-offset: the coupling needs an off-centre beam (an irradiance gradient)")
+    w = 0.5 * bench.laser.beam_diameter_mm
+    if np.hypot(*bo) + pupil_mm > w:  # the sensor's own rule: a lenslet below 1/e^2 of the peak is not used
+        raise ConfigError(f"--beam-offset/--pupil/--beam-scale: the pupil's edge lies {np.hypot(*bo) + pupil_mm:g} mm "
+                          f"from the beam's centre, beyond its 1/e^2 radius {w:g} mm (lenslets the sensor would "
+                          "not use); give a smaller offset or pupil, or a wider beam")
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil and rule only
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
     lit, nbrs = lit_lenslets(bench.sensor, c, ring)
@@ -647,8 +652,10 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.json:  # before the work: a read-only or full folder is refused at once
         check_output(a.json, folder=False, option="--json")
-    if a.estimate_mc < 0 or not 0 < a.pupil <= 5.0 or not 1 <= a.zernike_order <= 10:
-        ap.error("--estimate-mc: a number of draws >= 1; --pupil: a radius in (0, 5] mm; --zernike-order: 1 to 10")
+    if a.estimate_mc < 0 or not 1 <= a.zernike_order <= 10:
+        ap.error("--estimate-mc: a number of draws >= 1; --zernike-order: 1 to 10")
+    if not 0 < a.pupil <= 5.0:
+        ap.error(f"--pupil: a radius in (0, 5] mm, got {a.pupil}")
     if a.cut_scan and not all(0 <= c < 1 for c in (*a.cuts, a.cut_ref)):
         ap.error("--cuts/--cut-ref: a noise cut is a fraction of the spot peak, 0 <= cut < 1")
     if a.radii is None:
