@@ -121,14 +121,17 @@ def simulate_centroids(model: ForwardModel, pose, n_grid: int = 160, M: int = 24
 
 
 def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: float, ring: int = 4, n_nodes: int = 160,
-                            sub: int = 4) -> np.ndarray:
+                            sub: int = 4, diameter: float | None = None, lit=None) -> np.ndarray:
     """Centroids (n, 2) mm in the pixel windows starting at pixels ``windows`` (n, 2) of the lenslets at ``centres``
     (n, 2) mm, each window lit by the (2 ring + 1)^2 block of square lenslets around its own (fully lit, no gaps):
     the Fresnel integral over each sub-aperture of field(X, Y) (complex amplitude on the lenslet plane) times the
     lenslet's focusing phase, by Gauss-Legendre nodes (``n_nodes`` per axis and cell: the far cells' linear phase
     makes ~(ring + 1/2) p^2 / (lambda f) oscillations across a cell), each pixel integrated over sub x sub points.
     Independent of lensforge's kernel (no moments, no series, no Hermite pistons): the field is evaluated where it
-    is, the integral done by brute force, one sub-aperture a matrix product."""
+    is, the integral done by brute force, one sub-aperture a matrix product. diameter (mm): round lenslets instead,
+    each disc integrated with its smooth rim, Y = r sin(theta) by Gauss-Legendre nodes in theta and X by nodes
+    across each row's chord (no strips, no mask, no anti-aliasing); lit (L, 2) mm: every window lit by these
+    lenslets' centres instead of its own block."""
     p, f, pix, W = sensor.pitch_mm, sensor.lenslet_focal_mm, sensor.pixel_mm, int(sensor.centroid_window_px)
     k = 2 * np.pi / (wavelength_nm * 1e-6)
     edge0 = float(sensor.camera_offset_px) * pix
@@ -138,16 +141,28 @@ def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: floa
     for c, st in zip(np.asarray(centres, float), np.asarray(windows, float)):
         xs = edge0 + (st[:, None] + (np.arange(W * sub) + 0.5)[None, :] / sub) * pix  # (2, S) sample coordinates
         U = np.zeros((W * sub, W * sub), complex)
-        for a in range(-ring, ring + 1):
-            for b in range(-ring, ring + 1):
-                cb = c + p * np.array([a, b])
+        block = (c + p * np.array([[a, b] for a in range(-ring, ring + 1) for b in range(-ring, ring + 1)])
+                 if lit is None else np.asarray(lit, float))
+        for cb in block:
+            # exp(i k [(x - X)^2 - (X - c_b)^2] / 2 f) = exp(i k (x^2 - c_b^2) / 2 f) exp(-i k X (x - c_b) / f)
+            if diameter is None:
                 X, Y = cb[0] + t, cb[1] + t
                 XX, YY = np.meshgrid(X, Y, indexing="xy")
                 E = field(XX, YY) * np.outer(wt, wt)
-                # exp(i k [(x - X)^2 - (X - c_b)^2] / 2 f) = exp(i k (x^2 - c_b^2) / 2 f) exp(-i k X (x - c_b) / f)
                 Fx, Fy = (np.exp(0.5j * k * (xs[j][:, None] ** 2 - cb[j] ** 2) / f)
                           * np.exp(-1j * k * np.outer(xs[j] - cb[j], (X, Y)[j]) / f) for j in (0, 1))
                 U += Fy @ E @ Fx.T
+                continue
+            r = 0.5 * diameter
+            u, wu = np.polynomial.legendre.leggauss(n_nodes)
+            th, wth = 0.5 * np.pi * u, 0.5 * np.pi * wu
+            Y = cb[1] + r * np.sin(th)  # rows, dY = r cos(theta) dtheta
+            half = r * np.cos(th)  # each row's half chord
+            XX = cb[0] + half[:, None] * u[None, :]  # (rows, n)
+            E = field(XX, np.broadcast_to(Y[:, None], XX.shape)) * (half * r * np.cos(th) * wth)[:, None] * wu
+            Fy = np.exp(0.5j * k * (xs[1][:, None] ** 2 - cb[1] ** 2) / f) * np.exp(-1j * k * np.outer(xs[1] - cb[1], Y) / f)
+            G = np.einsum("jn,sjn->sj", E, np.exp(-1j * k * (xs[0][:, None, None] - cb[0]) * XX[None] / f))  # (S, rows)
+            U += (Fy @ G.T) * np.exp(0.5j * k * (xs[0] ** 2 - cb[0] ** 2) / f)[None, :]
         inten = (np.abs(U) ** 2).reshape(W, sub, W, sub).sum(axis=(1, 3))
         pc = edge0 + (st[:, None] + np.arange(W)[None, :] + 0.5) * pix
         out.append([inten.sum(0) @ pc[0] / inten.sum(), inten.sum(1) @ pc[1] / inten.sum()])

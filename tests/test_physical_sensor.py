@@ -128,6 +128,57 @@ def test_round_apertures_and_the_beam_reference_run(bench):
         assert np.all(np.isfinite(r.z)) and r.slopes.shape == (model.pupil.n_lenslets, 2)
 
 
+def test_round_and_square_lenslets_against_a_direct_fresnel_integral():
+    """The reference's lenslet apertures against an independent computation: a saddle-and-curvature wave (K up to
+    10.7 mrad/mm) through a steep Gaussian beam (2.6 mm waist, 2 mm off), five pupil lenslets and the reference's
+    whole lit box, both with the Fresnel kernel; ``physical_optics.block_fresnel_centroids`` integrates each disc with
+    its smooth rim by Gauss-Legendre nodes (no sampling grid, no anti-aliased edges) and each square cell alike,
+    into the same windows. Measured (urad, slope noise 8): round 140 um, 8 samples per pixel, worst 0.82 (2.7 at
+    4); square 1.6 (0.93 at 16). The round lenslets' own effect, round - square, reaches 87 urad here; the
+    reference's is within 1.8 urad of the direct one's."""
+    from physical_optics import block_fresnel_centroids
+
+    from lensforge.verification.physical_sensor import lit_box
+
+    bench = lf.Bench.default().replace(sensor={"pupil_radius_mm": 0.2, "zernike_order": 1},
+                                       laser={"beam_diameter_mm": 5.25})
+    s = bench.sensor
+    c = lenslet_pupil(s).centres
+    assert len(c) == 5
+    H = np.array([[-8e-3, -10.7e-3], [-10.7e-3, 5e-3]])
+    bo, w, k = (0.7, -2.0), 2.625, 2 * np.pi / (bench.laser.wavelength_nm * 1e-6)
+
+    def field(X, Y):
+        return np.exp(-((X - bo[0]) ** 2 + (Y - bo[1]) ** 2) / w**2
+                      + 0.5j * k * (H[0, 0] * X * X + 2 * H[0, 1] * X * Y + H[1, 1] * Y * Y))
+
+    def plane(X, Y):
+        return np.ones_like(X) + 0j
+
+    pix, W = s.pixel_mm, s.centroid_window_px
+    edge0 = s.camera_offset_px * pix
+
+    def window(pos):  # the window the tracking rule stands on at a converged centroid
+        return np.floor((pos - edge0) / pix - 0.5 * W + 0.5)
+
+    out = {}
+    for aperture in ("square", "round"):
+        cfg = PhysicalSensor(aperture=aperture, propagation="fresnel", margin_lenslets=3, samples_per_pixel=8)
+        slopes, cen, ref = field_slopes(plane_field(bench, cfg, c, (0.0, 0.0), True, None, bo, H), bench, cfg, c)
+        cx, cy = lit_box(s, cfg, c)
+        lit = np.stack(np.meshgrid(cx, cy, indexing="xy"), -1).reshape(-1, 2)
+        dia = cfg.lenslet_diameter_mm if aperture == "round" else None
+        direct = (block_fresnel_centroids(field, c, window(cen), s, 532.0, n_nodes=160, diameter=dia, lit=lit)
+                  - block_fresnel_centroids(plane, c, window(ref), s, 532.0, n_nodes=160, diameter=dia, lit=lit))
+        out[aperture] = (slopes, direct / s.lenslet_focal_mm)
+    sigma = bench.noise.slope_sigma_urad * 1e-6
+    for aperture, (ref_s, direct_s) in out.items():
+        assert np.abs(ref_s - direct_s).max() < (0.15 if aperture == "round" else 0.25) * sigma, aperture
+    effect_ref, effect_direct = out["round"][0] - out["square"][0], out["round"][1] - out["square"][1]
+    assert np.abs(effect_direct).max() > 2.0 * sigma  # the apertures' shape is what is checked
+    assert np.abs(effect_ref - effect_direct).max() < 0.05 * np.abs(effect_direct).max()
+
+
 def test_settings_are_checked(bench):
     with pytest.raises(ConfigError, match="aperture"):
         PhysicalSensor(aperture="hexagonal")
