@@ -135,8 +135,14 @@ def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: floa
     p, f, pix, W = sensor.pitch_mm, sensor.lenslet_focal_mm, sensor.pixel_mm, int(sensor.centroid_window_px)
     k = 2 * np.pi / (wavelength_nm * 1e-6)
     edge0 = float(sensor.camera_offset_px) * pix
-    t, wt = np.polynomial.legendre.leggauss(n_nodes)
-    t, wt = 0.5 * p * t, 0.5 * p * wt
+    u, wu = np.polynomial.legendre.leggauss(n_nodes)
+    t, wt = 0.5 * p * u, 0.5 * p * wu  # a square cell's nodes about its centre
+    if diameter is not None:  # a disc's: rows Y = r sin(theta) (dY = r cos(theta) dtheta), nodes across each chord
+        r = 0.5 * diameter
+        th = 0.5 * np.pi * u
+        dy, half = r * np.sin(th), r * np.cos(th)  # each row's offset and half chord
+        dxx = half[:, None] * u[None, :]  # (rows, n)
+        w_disc = (half * r * np.cos(th) * 0.5 * np.pi * wu)[:, None] * wu
     out = []
     for c, st in zip(np.asarray(centres, float), np.asarray(windows, float)):
         xs = edge0 + (st[:, None] + (np.arange(W * sub) + 0.5)[None, :] / sub) * pix  # (2, S) sample coordinates
@@ -153,13 +159,8 @@ def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: floa
                           * np.exp(-1j * k * np.outer(xs[j] - cb[j], (X, Y)[j]) / f) for j in (0, 1))
                 U += Fy @ E @ Fx.T
                 continue
-            r = 0.5 * diameter
-            u, wu = np.polynomial.legendre.leggauss(n_nodes)
-            th, wth = 0.5 * np.pi * u, 0.5 * np.pi * wu
-            Y = cb[1] + r * np.sin(th)  # rows, dY = r cos(theta) dtheta
-            half = r * np.cos(th)  # each row's half chord
-            XX = cb[0] + half[:, None] * u[None, :]  # (rows, n)
-            E = field(XX, np.broadcast_to(Y[:, None], XX.shape)) * (half * r * np.cos(th) * wth)[:, None] * wu
+            Y, XX = cb[1] + dy, cb[0] + dxx
+            E = field(XX, np.broadcast_to(Y[:, None], XX.shape)) * w_disc
             Fy = np.exp(0.5j * k * (xs[1][:, None] ** 2 - cb[1] ** 2) / f) * np.exp(-1j * k * np.outer(xs[1] - cb[1], Y) / f)
             G = np.einsum("jn,sjn->sj", E, np.exp(-1j * k * (xs[0][:, None, None] - cb[0]) * XX[None] / f))  # (S, rows)
             U += (Fy @ G.T) * np.exp(0.5j * k * (xs[0] ** 2 - cb[0] ** 2) / f)[None, :]
@@ -167,3 +168,16 @@ def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: floa
         pc = edge0 + (st[:, None] + np.arange(W)[None, :] + 0.5) * pix
         out.append([inten.sum(0) @ pc[0] / inten.sum(), inten.sum(1) @ pc[1] / inten.sum()])
     return np.array(out)
+
+
+def quadratic_beam_field(beam_offset_mm, waist_mm: float, hessian, wavelength_nm: float):
+    """field(X, Y): a Gaussian beam (1/e amplitude radius waist_mm, centred at beam_offset_mm) carrying the path
+    X^T H X / 2 (``hessian`` H (2, 2) 1/mm, symmetric), written out here, apart from lensforge's waves."""
+    (x0, y0), H = beam_offset_mm, np.asarray(hessian, float)
+    k = 2 * np.pi / (wavelength_nm * 1e-6)
+
+    def field(X, Y):
+        return np.exp(-((X - x0) ** 2 + (Y - y0) ** 2) / waist_mm**2
+                      + 0.5j * k * (H[0, 0] * X * X + 2 * H[0, 1] * X * Y + H[1, 1] * Y * Y))
+
+    return field

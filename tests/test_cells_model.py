@@ -534,7 +534,7 @@ def test_cells_kernel_against_a_direct_fresnel_integral_of_its_field():
     # in units of the complete spot's weighting f K_xy g_y p^2 / 12. Measured: 1.1289 'cells', 1.1279 direct; the
     # own window alone gives 0.9478 (``window_gain``), so the neighbours' share is 0.18 of the unit, and a 3 % error
     # in it would show
-    from physical_optics import block_fresnel_centroids
+    from physical_optics import block_fresnel_centroids, quadratic_beam_field
 
     from lensforge.verification.physical_sensor import analytic_wave_quadratures
 
@@ -552,12 +552,7 @@ def test_cells_kernel_against_a_direct_fresnel_integral_of_its_field():
         bo = np.array([0.0, sgn * y0])
         sq, irr = analytic_wave_quadratures(bench, lit[:, None, :] + p * off[None], None, True, tuple(bo), (0, 0), H)
         s, st = centroid.cell_crosstalk_slopes(sq, w * irr, off, w, lit, nbrs, sensor, wl, return_windows=True)
-        k = 2 * np.pi / (wl * 1e-6)
-
-        def field(X, Y):
-            return np.exp(-((X - bo[0]) ** 2 + (Y - bo[1]) ** 2) / wb**2 + 1j * k * kxy * X * Y)
-
-        cen = block_fresnel_centroids(field, pupil, st, sensor, wl)
+        cen = block_fresnel_centroids(quadratic_beam_field(bo, wb, H, wl), pupil, st, sensor, wl)
         odd[sgn] = (s[:, 0], cen[:, 0] / f)
     unit = kxy * (4 * y0 / wb**2) * p * p / 12
     cells, direct = ((0.5 * (odd[1.0][j] - odd[-1.0][j])) / unit for j in (0, 1))
