@@ -498,7 +498,7 @@ def spheres(radii=(20.0, 30.0, -30.0, 60.0, 100.0, -100.0), spp: int = 4, margin
                             "sigma": v.tolist()} for k, v in res.items()}
             print(f"{key:16s} " + " | ".join(f"{k}: Z3 {v[j3]:6.2f} Z4 {v[j4]:7.2f} max {np.abs(v).max():6.2f} "
                                              f"(Z{m.modes[np.argmax(np.abs(v))]})" for k, v in res.items()), flush=True)
-            if len(m.modes) and hessian is not None:  # a saddle's residual is not only Z3/Z4: every mode
+            if hessian is not None:  # a saddle's residual is not only Z3/Z4: every mode
                 for k, v in res.items():
                     print(f"    {k:10s} " + " ".join(f"Z{j}:{x:+.2f}" for j, x in zip(m.modes, v)), flush=True)
     return out
@@ -521,16 +521,16 @@ def gradient_coupling(hessian, beam_offset_mm, beam_scale: float = 0.5, pupil_mm
     bo = np.asarray(beam_offset_mm, float)
     if not np.any(bo):
         raise ConfigError("--beam-offset: the coupling needs an off-centre beam (an irradiance gradient)")
-    w = 0.5 * bench.laser.beam_diameter_mm
-    if np.hypot(*bo) + pupil_mm > w:  # the sensor's own rule: a lenslet below 1/e^2 of the peak is not used
+    radius = 0.5 * bench.laser.beam_diameter_mm
+    if np.hypot(*bo) + pupil_mm > radius:  # the sensor's own rule: a lenslet below 1/e^2 of the peak is not used
         raise ConfigError(f"--beam-offset/--pupil/--beam-scale: the pupil's edge lies {np.hypot(*bo) + pupil_mm:g} mm "
-                          f"from the beam's centre, beyond its 1/e^2 radius {w:g} mm (lenslets the sensor would "
+                          f"from the beam's centre, beyond its 1/e^2 radius {radius:g} mm (lenslets the sensor would "
                           "not use); give a smaller offset or pupil, or a wider beam")
     m = ForwardModel(bench, lf.paper_lens("polynomial"))  # its pupil and rule only
     c, p, off, w = m.pupil.centres, bench.sensor.pitch_mm, m.quad_offsets, m.quad_weights
     lit, nbrs = lit_lenslets(bench.sensor, c, ring)
     _check_wave(bench, lit, None, (0.0, 0.0), H)
-    g = 4.0 * bo / (0.5 * bench.laser.beam_diameter_mm) ** 2  # grad ln I at the centre, 1/mm
+    g = 4.0 * bo / radius**2  # grad ln I at the centre, 1/mm
     kg = H @ g  # the weighting's slope shift per unit p^2 / 12, each axis
     if not np.any(kg):
         raise ConfigError("--hessian/--beam-offset: the wave has no curvature along the beam's offset: nothing to weight")
@@ -557,6 +557,14 @@ def gradient_coupling(hessian, beam_offset_mm, beam_scale: float = 0.5, pupil_mm
         out[name] = {"mean": float(odd.mean()), "spread": float(odd.std())}
         print(f"  {name:14s} {odd.mean():+.4f} (lenslets' spread {odd.std():.4f})", flush=True)
     return out
+
+
+def _hessian(xx_xy_yy) -> np.ndarray | None:
+    """The symmetric H (2, 2) 1/mm of --hessian xx,xy,yy (mrad/mm); None for None."""
+    if xx_xy_yy is None:
+        return None
+    xx, xy, yy = xx_xy_yy
+    return 1e-3 * np.array([[xx, xy], [xy, yy]])
 
 
 def _floats(n: int | None = None):
@@ -669,13 +677,11 @@ def main(argv=None):
     if a.gradient_coupling and (a.hessian is None or not 0 < a.beam_scale <= 10 or not 1 <= a.ring <= 16):
         ap.error("--gradient-coupling: needs --hessian xx,xy,yy; --beam-scale in (0, 10]; --ring 1 to 16")
     studies = [  # (chosen, the study): the first chosen runs, its record goes to --json
-        (a.gradient_coupling, lambda: gradient_coupling(
-            1e-3 * np.array([[a.hessian[0], a.hessian[1]], [a.hessian[1], a.hessian[2]]]), a.beam_offset,
-            a.beam_scale, a.pupil, a.spp, a.margin, a.ring, a.design)),
+        (a.gradient_coupling, lambda: gradient_coupling(_hessian(a.hessian), a.beam_offset, a.beam_scale, a.pupil,
+                                                        a.spp, a.margin, a.ring, a.design)),
         (a.spheres, lambda: spheres(a.radii, spp=a.spp, margin=a.margin, design=a.design,
                                     beam_offset_mm=a.beam_offset, tilt=tuple(1e-3 * np.asarray(a.tilt)),
-                                    hessian=None if a.hessian is None else 1e-3 * np.array(
-                                        [[a.hessian[0], a.hessian[1]], [a.hessian[1], a.hessian[2]]]))),
+                                    hessian=_hessian(a.hessian))),
         (a.estimate_mc, lambda: estimate_mc(a.estimate_mc, a.pupil, a.seed, a.zernike_order)),
         (a.cut_scan, lambda: cut_scan(a.lenses.split(",")[0], a.poses, a.cuts, a.cut_ref, a.spp, a.margin)),
         (a.round_parts, lambda: round_parts(a.lenses.split(",")[0], a.poses, a.spp, a.margin)),
