@@ -3,6 +3,8 @@ each from its own rays; issue 21): its kernel against brute-force Fresnel and Ra
 Jacobian against
 central differences, a noise-free pose estimate on it, and the model against the full-array physical reference."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -44,7 +46,19 @@ def _window_centroid_of(U, st, sensor, sub, spot):
     return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / inten.sum() - spot
 
 
-def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120):
+def _disc_nodes(diameter, n):
+    """Nodes (ux, uy) and weights (rows, n) mm over a disc: rows at y = r sin(theta), Gauss-Legendre in theta, each
+    row's chord by n Gauss-Legendre nodes (the direct integral's rule, no moments)."""
+    t, wt = _gl(n)
+    th, wth = np.pi * t, np.pi * wt
+    r = 0.5 * diameter
+    half = r * np.cos(th)
+    ux = 2 * half[:, None] * t[None, :]
+    uy = np.broadcast_to((r * np.sin(th))[:, None], ux.shape)
+    return ux, uy, (2 * half * r * np.cos(th) * wth)[:, None] * wt[None, :]
+
+
+def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120, diameter=None):
     """Window centroid of pupil lenslet i: every lit lenslet b of its block contributes the Fresnel integral of its
     own field, amplitude exp(ln_a_b + g_b . u / 2 + (h_bx u_x^2 + h_by u_y^2) / 4) and phase k (W_b + s_b . u + u K_b u / 2) over its square
     cell (u = X - c_b), W_b - W_i by the two-point Hermite rule on the slopes and curvatures, through its
@@ -55,17 +69,25 @@ def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes
     st, xs = _window_samples(spot, sensor, sub)  # (2, S) camera samples
     t, w = _gl(nodes)
     U = np.zeros((Wpx * sub, Wpx * sub), complex)
-    ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
+    if diameter is None:
+        ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
+        ww = np.outer(w, w) * p * p
+    else:  # a round lenslet: row y by row
+        ux, uy, ww = _disc_nodes(diameter, nodes)
     for b in neighbours[i]:
         if b < 0:
             continue
         c = centres[b]
         phase, lnA = _cell_field(i, b, cells, centres, ux, uy)
-        E = np.exp(lnA + 1j * k * phase) * np.outer(w, w) * p * p
+        E = np.exp(lnA + 1j * k * phase) * ww
         # Fresnel: the field exp(-i k |X - c|^2 / 2f) E(X) seen at x; the factor exp(i k |x|^2 / 2f) common to all
-        Gx = np.exp(1j * k * np.outer(c[0] - xs[0], c[0] + p * t) / f)
-        Gy = np.exp(1j * k * np.outer(c[1] - xs[1], c[1] + p * t) / f)
-        U += np.exp(-1j * k * (c @ c) / (2 * f)) * (Gy @ E @ Gx.T)
+        Gy = np.exp(1j * k * np.outer(c[1] - xs[1], c[1] + uy[:, 0]) / f)
+        if diameter is None:
+            Gx = np.exp(1j * k * np.outer(c[0] - xs[0], c[0] + p * t) / f)
+            U += np.exp(-1j * k * (c @ c) / (2 * f)) * (Gy @ E @ Gx.T)
+        else:
+            G = np.einsum("jn,sjn->sj", E, np.exp(1j * k * (c[0] - xs[0])[:, None, None] * (c[0] + ux)[None] / f))
+            U += np.exp(-1j * k * (c @ c) / (2 * f)) * (Gy @ G.T)
     return _window_centroid_of(U, st, sensor, sub, spot)
 
 
@@ -86,10 +108,22 @@ def _random_block(sensor, seed, ring, tilt0, spread):
     return pupil, centres, neighbours, cells
 
 
-def test_cells_kernel_is_the_blocks_fresnel_integral():
+_ROUND = 0.140  # mm: MLA150-5C lenslets (issue 21's spec-sheet citation)
+
+
+def _aperture(sensor, diameter):
+    """The sensor with round lenslets of ``diameter`` mm ('cells'), or as it is (None)."""
+    if diameter is None:
+        return sensor
+    return dataclasses.replace(sensor, lenslet_aperture="round", lenslet_diameter_mm=diameter, crosstalk="cells")
+
+
+@pytest.mark.parametrize("diameter", [None, _ROUND])
+def test_cells_kernel_is_the_blocks_fresnel_integral(diameter):
     # tilts up to 60 mrad, curvature alpha up to ~6, an irradiance gradient up to e^0.5 across a cell and curvature
-    # |delta| <= 0.11; one lenslet dark
-    sensor = Sensor()
+    # |delta| <= 0.11; one lenslet dark. Round lenslets: each disc's rows (``centroid.disc_rows``) against the
+    # brute force's own disc rule (nodes along each chord, no moments); measured 3e-11 urad at 4 rings
+    sensor = _aperture(Sensor(), diameter)
     pupil, centres, neighbours, cells = _random_block(sensor, 5, 2, 0.01, 0.015)
     L = len(centres)
     cells["ln_a"][L - 3] = -np.inf
@@ -102,25 +136,57 @@ def test_cells_kernel_is_the_blocks_fresnel_integral():
     assert centroid.CELL_SUB == old
     for i in (0, 4, 8):
         want = _brute_force_window(i, {**cells, "ln_a": np.where(cells["lit"], cells["ln_a"], -np.inf)}, centres,
-                                   neighbours, sensor, 532.0, centroid.CELL_SUB)
+                                   neighbours, sensor, 532.0, centroid.CELL_SUB, diameter=diameter)
         scale = np.abs(want).max()
         assert scale > 2e-5  # the effect is there: > 20 nm
         np.testing.assert_allclose(got[i], want, rtol=0, atol=1e-6 * scale + 1e-12)
 
 
 
-def _window_and_aperture_nodes(spot, sensor, sub, nodes):
+@pytest.mark.parametrize("diameter", [None, _ROUND])
+def test_cells_kernel_complex_step_is_its_derivative(diameter):
+    # the model's Jacobian is a complex step through the kernel: along a random direction of every cell input (tilt
+    # and spot, curvature, irradiance gradient and curvature, amplitude, coma), the windows frozen, against central
+    # differences; round lenslets take their rows' path (``centroid.disc_rows``)
+    sensor = _aperture(Sensor(), diameter)
+    pupil, centres, neighbours, cells = _random_block(sensor, 11, 1, 0.02, 0.01)
+    rng = np.random.default_rng(12)
+    L, n, f = len(centres), len(pupil), sensor.lenslet_focal_mm
+    cells["w3"] = rng.uniform(-0.5, 0.5, (L, 4))  # 1/mm^2: |k p^3 W3 / 6| up to ~0.02 rad
+    d = {key: rng.standard_normal(v.shape) * scale for (key, v), scale in
+         zip(((k_, cells[k_]) for k_ in ("tilt", "K", "g", "h", "ln_a", "w3")), (1e-3, 1e-3, 0.1, 1.0, 0.1, 0.05))}
+    d["K"] = 0.5 * (d["K"] + np.swapaxes(d["K"], 1, 2))
+
+    def shift(t):
+        c = {**cells, **{key: cells[key] + t * v for key, v in d.items()}}
+        return centroid.cell_shift(centres[:n] + f * c["tilt"][:n], c, centres, neighbours, sensor, 532.0,
+                                   windows=st)
+
+    _, st = centroid.cell_shift(centres[:n] + f * cells["tilt"][:n], cells, centres, neighbours, sensor, 532.0,
+                                return_windows=True)
+    h = 1e-30
+    cs = shift(1j * h).imag / h
+    eps = 1e-4
+    fd = (shift(eps) - shift(-eps)) / (2 * eps)
+    scale = np.abs(fd).max()
+    assert scale > 1e-3 * f  # the shifts move: > 1 mrad of slope per unit step
+    np.testing.assert_allclose(cs, fd, rtol=0, atol=1e-6 * scale)
+
+
+def _window_and_aperture_nodes(spot, sensor, sub, nodes, diameter=None):
     """(window's first pixels st, its camera samples X, Y, the aperture's Gauss-Legendre nodes ux, uy (mm from the
-    lenslet centre) and weights ww) of the brute-force integrals."""
+    lenslet centre) and weights ww) of the brute-force integrals; diameter: a round lenslet's (``_disc_nodes``)."""
     p = sensor.pitch_mm
     st, xs = _window_samples(spot, sensor, sub)
     X, Y = np.meshgrid(xs[0], xs[1], indexing="xy")
+    if diameter is not None:
+        return st, X, Y, *(v.ravel() for v in _disc_nodes(diameter, nodes))
     t, w = _gl(nodes)
     ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
     return st, X, Y, ux.ravel(), uy.ravel(), np.outer(w, w).ravel() * p * p
 
 
-def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120):
+def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120, diameter=None):
     """Window centroid of pupil lenslet i as ``_brute_force_window`` but each aperture point propagated to each
     camera sample by the Rayleigh-Sommerfeld kernel (f / r^2) exp(i k r), r = sqrt(f^2 + |rho|^2), relative to the
     Fresnel one: the factor exp(Lambda), Lambda = ln(f^2 / r^2) + i k (r - f - |rho|^2 / 2f), less the part the
@@ -130,7 +196,7 @@ def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, no
     k = 2 * np.pi / (wl_nm * 1e-6)
     s = cells["tilt"]
     spot = centres[i] + f * s[i]
-    st, X, Y, ux, uy, ww = _window_and_aperture_nodes(spot, sensor, sub, nodes)
+    st, X, Y, ux, uy, ww = _window_and_aperture_nodes(spot, sensor, sub, nodes, diameter)
     U = np.zeros(X.size, complex)
     for b in neighbours[i]:
         if b < 0:
@@ -152,32 +218,34 @@ def _brute_force_rs_window(i, cells, centres, neighbours, sensor, wl_nm, sub, no
     return _window_centroid_of(U.reshape(X.shape), st, sensor, sub, spot)
 
 
-def test_cells_kernel_propagates_as_the_rayleigh_sommerfeld_integral():
+@pytest.mark.parametrize("diameter", [None, _ROUND])
+def test_cells_kernel_propagates_as_the_rayleigh_sommerfeld_integral(diameter):
     # the kernel's non-paraxial propagation (exact constant, gradient and squares, the rest to first order) against
     # the node-by-node Rayleigh-Sommerfeld integral of the same block: tilts up to 110 mrad (the cross term e_x e_y
     # to first order leaves ~2 % of the non-paraxial shift at (70, -50) mrad, 0.5 % at 90 mrad along x), curvature, irradiance
     # gradient and curvature; an 11-pixel window keeps the brute force small
-    sensor = Sensor(centroid_window_px=11)
+    sensor = _aperture(Sensor(centroid_window_px=11), diameter)
     pupil, centres, neighbours, cells = _random_block(sensor, 8, 1, (0.07, -0.05), 0.02)
     n = len(pupil)
     spot = centres[:n] + sensor.lenslet_focal_mm * cells["tilt"][:n]
     got, fresnel = (centroid.cell_shift(spot, cells, centres, neighbours, sensor, 532.0, iterations=0, exact=e)
                     for e in (True, False))
     for i in (0, 4, 8):
-        want = _brute_force_rs_window(i, cells, centres, neighbours, sensor, 532.0, centroid.CELL_SUB)
+        want = _brute_force_rs_window(i, cells, centres, neighbours, sensor, 532.0, centroid.CELL_SUB,
+                                      diameter=diameter)
         effect = np.abs(fresnel[i] - want).max()
         assert effect > 2e-5  # the non-paraxial part is there: > 20 nm (4 urad of slope)
         np.testing.assert_allclose(got[i], want, rtol=0, atol=0.03 * effect)  # 0.2-1.8 % measured
 
 
-def _exact_wave_window(S, pupil_i, centres, neighbours, spot, sensor, wl_nm, sub, nodes, fresnel=False):
+def _exact_wave_window(S, pupil_i, centres, neighbours, spot, sensor, wl_nm, sub, nodes, fresnel=False, diameter=None):
     """Window centroid minus spot (2,) of pupil lenslet ``pupil_i`` under the exact wave exp(i k S(x, y)) (S in mm of
     path, its gradient the direction sines) through every ideal thin lenslet of its block, each point propagated to
     each camera sample by the whole Rayleigh-Sommerfeld kernel (f / r^2) exp(i k r) (fresnel: its paraxial form):
     nothing linearised, no slopes, no tan mapping -- the model's inputs are not used."""
     f = sensor.lenslet_focal_mm
     k = 2 * np.pi / (wl_nm * 1e-6)
-    st, X, Y, ux, uy, ww = _window_and_aperture_nodes(spot, sensor, sub, nodes)
+    st, X, Y, ux, uy, ww = _window_and_aperture_nodes(spot, sensor, sub, nodes, diameter)
     U = np.zeros(X.size, complex)
     for b in neighbours[pupil_i]:
         if b < 0:
@@ -192,8 +260,9 @@ def _exact_wave_window(S, pupil_i, centres, neighbours, spot, sensor, wl_nm, sub
     return _window_centroid_of(U.reshape(X.shape), st, sensor, sub, spot)
 
 
-@pytest.mark.parametrize("R, centre", [(29.0, (1.5, 0.0)), (-29.0, (0.0, 1.5))])
-def test_cells_kernel_against_an_exact_wave(R, centre, alpha=0.0):
+@pytest.mark.parametrize("R, centre, diameter", [(29.0, (1.5, 0.0), None), (-29.0, (0.0, 1.5), None),
+                                                 (29.0, (1.2, 1.2), _ROUND)])
+def test_cells_kernel_against_an_exact_wave(R, centre, diameter, alpha=0.0):
     # an independent check of the model's non-paraxial propagation (the other Rayleigh-Sommerfeld test shares its
     # linearisation about the chief ray): waves converging to a point R = 29 mm behind the lenslets (the paper
     # Zernike lens's curvature; R < 0 diverging) seen 1.5 mm off axis (52 mrad), as exact fields through ideal
@@ -205,7 +274,7 @@ def test_cells_kernel_against_an_exact_wave(R, centre, alpha=0.0):
     # light. Pistons from the integrated direction sines plus the kernel's chief-ray terms took these to -0.13,
     # -0.20, -0.34 and the diverging wave's 0.48 to 0.16, but moved the full-array reference's spheres the other
     # way (Z4 +0.1 sigma), so they are not in the model
-    sensor = Sensor(centroid_window_px=11)
+    sensor = _aperture(Sensor(centroid_window_px=11), diameter)
     f, p = sensor.lenslet_focal_mm, sensor.pitch_mm
     pupil = p * np.round(np.array([centre]) / p)
     centres, neighbours = centroid.lit_lenslets(sensor, pupil, ring=1)
@@ -226,8 +295,10 @@ def test_cells_kernel_against_an_exact_wave(R, centre, alpha=0.0):
     spot = centres[:1] + f * tilt[:1]
     got = centroid.cell_shift(spot, cells, centres, neighbours, sensor, 532.0, iterations=0)[0]
     sub = centroid.CELL_SUB
-    want = _exact_wave_window(S, 0, centres, neighbours, spot[0], sensor, 532.0, sub, 64)  # converged to 1e-3 urad
-    paraxial = _exact_wave_window(S, 0, centres, neighbours, spot[0], sensor, 532.0, sub, 64, fresnel=True)
+    nodes = 64 if diameter is None else 96  # converged to 1e-3 urad
+    want = _exact_wave_window(S, 0, centres, neighbours, spot[0], sensor, 532.0, sub, nodes, diameter=diameter)
+    paraxial = _exact_wave_window(S, 0, centres, neighbours, spot[0], sensor, 532.0, sub, nodes, fresnel=True,
+                                  diameter=diameter)
     effect = np.abs(paraxial - want).max()
     assert effect > 40e-6 * f  # the non-paraxial part is there: > 40 urad of slope
     err = np.abs(got - want).max()
@@ -558,3 +629,20 @@ def test_cells_kernel_against_a_direct_fresnel_integral_of_its_field():
     cells, direct = ((0.5 * (odd[1.0][j] - odd[-1.0][j])) / unit for j in (0, 1))
     np.testing.assert_allclose(cells, direct, atol=5e-3)
     assert np.all(cells - 0.9478 > 0.1)  # the neighbours' share is there to be checked
+
+
+def test_round_lenslets_are_a_cells_bench_setting():
+    # round lenslets only where 'cells' renders them (a pixel window, the cross-talk kernel); a diameter in um or
+    # beyond the pitch is refused by name; the own-centroid proxy a fit iterates on has square cells
+    b = lf.Bench.default()
+    for changes, field in (({"lenslet_aperture": "round"}, "lenslet_aperture"),
+                           ({"lenslet_aperture": "hex", "crosstalk": "cells"}, "lenslet_aperture"),
+                           ({"lenslet_aperture": "round", "crosstalk": "cells", "centroid_window_px": 0}, "lenslet_aperture"),
+                           ({"lenslet_aperture": "round", "crosstalk": "cells", "lenslet_diameter_mm": 140}, "lenslet_diameter_mm"),
+                           ({"lenslet_diameter_mm": float("nan")}, "lenslet_diameter_mm")):
+        with pytest.raises(lf.ConfigError, match=f"sensor.{field}"):
+            b.replace(sensor=changes)
+    r = b.replace(sensor={"lenslet_aperture": "round", "crosstalk": "cells"})
+    own = r.own_centroid().sensor
+    assert (own.lenslet_aperture, own.crosstalk) == ("square", "none")
+    assert lf.Bench.from_dict(r.to_dict()).sensor.lenslet_aperture == "round"

@@ -164,7 +164,7 @@ def test_round_and_square_lenslets_against_a_direct_fresnel_integral():
         slopes, cen, ref = field_slopes(plane_field(bench, cfg, c, (0.0, 0.0), True, None, bo, H), bench, cfg, c)
         cx, cy = lit_box(s, cfg, c)
         lit = np.stack(np.meshgrid(cx, cy, indexing="xy"), -1).reshape(-1, 2)
-        dia = cfg.lenslet_diameter_mm if aperture == "round" else None
+        dia = cfg.shape(s)[1] if aperture == "round" else None
         direct = (block_fresnel_centroids(field, c, window(cen), s, wl, n_nodes=160, diameter=dia, lit=lit)
                   - block_fresnel_centroids(plane, c, window(ref), s, wl, n_nodes=160, diameter=dia, lit=lit))
         out[aperture] = (slopes, direct / s.lenslet_focal_mm)

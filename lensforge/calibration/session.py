@@ -273,7 +273,7 @@ def plan(design: LensSpec, *, bench: Bench | None = None, robot: RobotModel | st
     # the candidate search runs on the own-centroid sensor model: the cross-talk model (``sensor.crosstalk``)
     # costs ~100x a pose and scales the pose CRLB by a near-uniform 1.04-1.11 (paper lenses, 3 poses), which
     # leaves the ranking of candidates; the chosen plan's prediction is then the bench's own model's
-    search = bench if bench.sensor.crosstalk == "none" else bench.replace(sensor={"crosstalk": "none"})
+    search = bench.own_centroid()
     stage = progress or (lambda _text: None)
     stage("plan: lighting the candidate poses")
     model = ForwardModel(search, lens)

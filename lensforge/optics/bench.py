@@ -109,6 +109,12 @@ class Sensor:
     f s = 1 mm, ~7 pitches, on the camera; neither the lenslet's off-axis aberrations nor
     the tracking software have been checked that far): a placeholder for the sensor-physics
     model's validated range, to be tightened there. 0 = no bound.
+    lenslet_aperture: 'square' (fully filled pitch x pitch cells, the default) or 'round' (discs of
+    ``lenslet_diameter_mm`` with opaque gaps: a chrome-masked array such as the MLA150-5C, whose spec
+    sheet, as cited in issue 21, gives 140 um lenslets at 150 um pitch). Only the 'cells' model renders
+    the shape (each disc as Gauss-Legendre rows with exact chords, ``centroid.disc_rows``; ~50x the
+    square cells' cost); the own-centroid and 'neighbours' models assume square cells, so a round bench
+    needs ``crosstalk = 'cells'``.
     """
 
     pitch_mm: float = 0.150
@@ -127,6 +133,8 @@ class Sensor:
     camera_offset_px: float = 1.0 / 3.0
     validated_slope_mrad: float = 200.0
     focal_length_rel_sigma: float = 0.0
+    lenslet_aperture: str = "square"
+    lenslet_diameter_mm: float = 0.140
 
 
 @dataclass(frozen=True)
@@ -211,6 +219,13 @@ class Bench:
     def from_dict(cls, d: dict, where: str = "bench") -> "Bench":
         return _from_dict(cls, d, where)
 
+    def own_centroid(self) -> "Bench":
+        """This bench with each lenslet's own centroid (``sensor.crosstalk`` 'none', square cells): the fast proxy a
+        cross-talk fit iterates on and a plan searches with."""
+        if self.sensor.crosstalk == "none":
+            return self
+        return self.replace(sensor={"crosstalk": "none", "lenslet_aperture": "square"})
+
     def replace(self, **changes) -> "Bench":
         """Copy with changes; sub-tables by dict, e.g. replace(sensor={'zernike_order': 6})."""
         kw = {}
@@ -228,10 +243,11 @@ _POSITIVE = {
     "laser.wavelength_nm", "laser.beam_diameter_mm", "placement.distance_mm", "sensor.pitch_mm",
     "sensor.aperture_mm", "sensor.pupil_radius_mm", "sensor.zernike_order", "pose_limits.translation_mm",
     "pose_limits.rotation_rad", "rank_rtol", "fd_steps", "pose_scales", "sensor.lenslet_focal_mm",
-    "sensor.pixel_mm", "sensor.subaperture_quadrature", "laser.expander_magnification",
+    "sensor.pixel_mm", "sensor.subaperture_quadrature", "laser.expander_magnification", "sensor.lenslet_diameter_mm",
 }
 SPOT_ASSIGNMENTS = ("fixed", "tracking", "none")
 CROSSTALK_MODELS = ("none", "neighbours", "cells")
+LENSLET_APERTURES = ("square", "round")
 _NONNEG = {"noise.slope_sigma_urad", "sensor.irradiance_threshold", "sensor.centroid_window_px",
            "sensor.centroid_threshold", "sensor.validated_slope_mrad", "sensor.focal_length_rel_sigma"}
 _LENGTHS = {"offset_mm": 2, "slope": 2, "pupil_center_mm": 2, "fd_steps": 6, "pose_scales": 6}
@@ -255,6 +271,10 @@ def _validate(obj, prefix: str = "") -> None:
         if f.name == "crosstalk":
             if v not in CROSSTALK_MODELS:
                 raise ConfigError(f"{name}: must be one of {list(CROSSTALK_MODELS)}, got {v!r}")
+            continue
+        if f.name == "lenslet_aperture":
+            if v not in LENSLET_APERTURES:
+                raise ConfigError(f"{name}: must be one of {list(LENSLET_APERTURES)}, got {v!r}")
             continue
         if f.name == "expander":
             if not isinstance(v, str):
@@ -289,6 +309,15 @@ def _validate(obj, prefix: str = "") -> None:
                 f"sensor.pupil_radius_mm: ~{n_lenslets:.0f} lenslets cannot determine {n_modes} Zernike modes; "
                 "enlarge the pupil or lower zernike_order"
             )
+        if obj.lenslet_diameter_mm > obj.pitch_mm * (1 + 1e-12):
+            raise ConfigError(f"sensor.lenslet_diameter_mm: a round lenslet of {obj.lenslet_diameter_mm} mm does not fit "
+                              f"its {obj.pitch_mm} mm pitch (give the diameter in mm, e.g. 0.140)")
+        if obj.lenslet_aperture == "round" and obj.crosstalk != "cells":
+            raise ConfigError("sensor.lenslet_aperture: 'round' lenslets are rendered only by the 'cells' sensor model; "
+                              "set sensor.crosstalk = \"cells\" (or lenslet_aperture = \"square\")")
+        if obj.lenslet_aperture == "round" and obj.centroid_window_px == 0:
+            raise ConfigError("sensor.lenslet_aperture: 'round' lenslets are rendered in the pixel window only; set "
+                              "sensor.centroid_window_px (e.g. 27) or lenslet_aperture = \"square\"")
         if not 1 <= obj.subaperture_quadrature <= 6:
             raise ConfigError(f"sensor.subaperture_quadrature: must be 1..6 points per axis, got {obj.subaperture_quadrature}")
         if obj.centroid_threshold >= 1:

@@ -273,7 +273,7 @@ class ForwardModel:
         with the cross-talk's correction frozen (``pose_estimation.estimate_poses_batch``)."""
         if self._own_centroid:
             return self
-        return ForwardModel(self.bench.replace(sensor={"crosstalk": "none"}), self.lens, validate=False)
+        return ForwardModel(self.bench.own_centroid(), self.lens, validate=False)
 
     @cached_property
     def noise_cov(self) -> np.ndarray:

@@ -70,7 +70,8 @@ class PhysicalSensor:
     """Settings of the reference model that the bench does not hold.
 
     aperture: 'square' (fully filled cells) or 'round'; lenslet_diameter_mm: the round
-    aperture, 140 um (MLA150-5C spec sheet as cited in issue 21); samples_per_pixel:
+    aperture (None, the default: the bench's ``sensor.lenslet_aperture`` and ``lenslet_diameter_mm``, 140 um by
+    the MLA150-5C spec sheet as cited in issue 21); samples_per_pixel:
     field samples per camera pixel and axis (4: 1.375 um; the modes move by <= 0.4 sigma
     from 4 to 5 and by up to 3 sigma from 2 to 4 on the paper's polynomial lens: the lenslet
     edges' diffraction needs fine samples; a field whose phase it would alias is refused,
@@ -98,8 +99,8 @@ class PhysicalSensor:
     approximation, the fast kernel's: a diagnostic of what the non-paraxial terms move, not a sensor).
     """
 
-    aperture: str = "square"
-    lenslet_diameter_mm: float = 0.140
+    aperture: str | None = None
+    lenslet_diameter_mm: float | None = None
     samples_per_pixel: int = 4
     margin_lenslets: int = 5
     pad_mm: float = 0.5
@@ -118,7 +119,7 @@ class PhysicalSensor:
     def __post_init__(self):
         if self.propagation not in ("exact", "fresnel"):
             raise ConfigError(f"physical sensor propagation: must be 'exact' or 'fresnel', got {self.propagation!r}")
-        if self.aperture not in APERTURES:
+        if self.aperture is not None and self.aperture not in APERTURES:
             raise ConfigError(f"physical sensor aperture: must be one of {list(APERTURES)}, got {self.aperture!r}")
         if self.reference not in ("factory", "beam"):
             raise ConfigError(f"physical sensor reference: must be 'factory' or 'beam', got {self.reference!r}")
@@ -143,6 +144,11 @@ class PhysicalSensor:
             raise ConfigError("physical sensor: the pixel centroid needs a window of >= 3 px "
                               "(sensor.centroid_window_px = 0, the complete spot, has no camera analogue)")
         return w
+
+    def shape(self, sensor: Sensor) -> tuple[str, float]:
+        """(aperture, diameter mm) of the lenslets: these settings', else the bench's."""
+        return (self.aperture if self.aperture is not None else sensor.lenslet_aperture,
+                float(self.lenslet_diameter_mm if self.lenslet_diameter_mm is not None else sensor.lenslet_diameter_mm))
 
     def cut(self, sensor: Sensor) -> float:
         return float(self.threshold if self.threshold is not None else sensor.centroid_threshold)
@@ -230,14 +236,15 @@ def lenslet_transmission_rows(x: np.ndarray, sensor: Sensor, cfg: PhysicalSensor
     f, p = cfg.focal(sensor), sensor.pitch_mm
     k = 2 * np.pi / wavelength_mm
     dx = x[1] - x[0]
-    if cfg.aperture == "square":  # separable: sum_i frac_i(x) exp(-i k (x - c_i)^2 / 2f), one sample in <= 2 cells
+    aperture, diameter = cfg.shape(sensor)
+    if aperture == "square":  # separable: sum_i frac_i(x) exp(-i k (x - c_i)^2 / 2f), one sample in <= 2 cells
         def factor(v, c):
             return (_cell_fractions(v, dx, c, p) * np.exp(-0.5j * k * (v[:, None] - c[None, :]) ** 2 / f)).sum(axis=1)
 
         ax = factor(x, cx)
         return lambda rows: factor(x[rows], cy)[:, None] * ax[None, :]
     # round: each sample belongs to its nearest lenslet; area fraction inside radius R (edge linearised)
-    R = 0.5 * cfg.lenslet_diameter_mm
+    R = 0.5 * diameter
     ux = x - cx[np.clip(np.rint((x - cx[0]) / p).astype(int), 0, len(cx) - 1)]
 
     def rows_of(rows):
