@@ -250,13 +250,15 @@ def pose_bias(path: str, models=("none", "cells"), design: str | None = None) ->
     out = {}
     for key, r in d.items():
         variant, lens, bench = _entry_lens(path, key, design)
-        if variant != "base":
+        if variant not in ("base", *FAST_CHANGES):
             continue
-        label = key.split("/")[0]
+        label = key if variant != "base" else key.split("/")[0]
+        fast = FAST_CHANGES.get(variant, {})
         poses = np.array([row["pose"] for row in r["rows"]])
         z = np.array([row["z_physical_um"] for row in r["rows"]])
         for mname in models:
-            model = ForwardModel(bench.replace(sensor={"crosstalk": mname}), lens)
+            model = ForwardModel(bench.replace(sensor={"crosstalk": mname, **(fast if mname == "cells" else {})}),
+                                 lens)
             _check_modes(path, key, r, model)
             est = estimate_poses_batch(model, z, poses)
             sig = np.sqrt(np.einsum("pii->pi", est.cov))

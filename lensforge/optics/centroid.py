@@ -474,6 +474,19 @@ def disc_row_counts(sensor: Sensor, wavelength_nm: float, ring: int) -> np.ndarr
     return (8 * np.ceil((r_beta + 16.0) / 8.0)).astype(int)
 
 
+def _disc_row_counts_of(arg, alpha, sensor: Sensor) -> np.ndarray:
+    """Rows (B,) of each round sub-aperture of a pass from the angles its light meets the windows at: r |beta| +
+    r^2 |alpha| + 16 in eights (``disc_row_counts``' rule), |beta| the largest over the pass's windows of the
+    kernel's own beta = 2 pi arg (m, B, S, 2), alpha (m, B, 1, 2) the sub-aperture's curvature: the spots' own
+    offsets (a lens's slope differences across the block) take the light beyond the block geometry's angles
+    (``disc_row_counts``, which sizes the passes)."""
+    r = 0.5 * float(sensor.lenslet_diameter_mm) / float(sensor.pitch_mm)
+    b = 2 * np.pi * np.abs(np.real(arg)).max(axis=(0, 2))  # (B, 2)
+    a = np.abs(np.real(alpha)).max(axis=(0, 2)).max(axis=-1)  # (B,)
+    need = r * np.hypot(b[:, 0], b[:, 1]) + r * r * a
+    return (8 * np.ceil((need + 16.0) / 8.0)).astype(int)
+
+
 def disc_rows(sensor: Sensor, n: int):
     """None for square lenslets; for round ones (``sensor.lenslet_aperture``) the disc of ``lenslet_diameter_mm`` as
     n rows across y (``disc_row_counts``), in pitches: (y_j, weights w_j, chords h_j) (n,) each, with int_disc g dA =
@@ -531,10 +544,7 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     round_ = sensor.lenslet_aperture == "round"
     if round_:  # a round sub-aperture's rows carry the cross term exactly, as their chords' tilts: no series
         assert per_cell, "round lenslets: the 'cells' blocks only"
-        counts = disc_row_counts(sensor, wavelength_nm, int(round((np.sqrt(nb_pos.shape[-2]) - 1) / 2)))
-        order = np.argsort(counts, kind="stable")  # sub-apertures grouped by their rows
-        R, pw, ir_re, ir_im = _series_weights(np.zeros((a_xy.shape[0], counts.sum())),
-                                              np.zeros((a_xy.shape[0], counts.sum()), int))
+        R, pw, ir_re, ir_im = _series_weights(np.zeros((a_xy.shape[0], 1)), np.zeros((a_xy.shape[0], 1), int))
     else:
         R, pw, ir_re, ir_im = _series_weights(a_xy, _xy_ranks(np.abs(np.real(a_xy))))
     if not per_cell:
@@ -567,6 +577,9 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
         mr, mi = square_aperture_moments(2 * np.pi * arg, alpha, n_mom, gam, dlt)
         ar, ai = mr * cos_r - mi * sin_r, mr * sin_r + mi * cos_r
     else:  # each row of a round sub-aperture is a sub-aperture of its own from here on: (m, sum of rows, S, 2, .)
+        counts = _disc_row_counts_of(arg, alpha, sensor)
+        order = np.argsort(counts, kind="stable")  # sub-apertures grouped by their rows
+        pw = np.ones((a_xy.shape[0], counts.sum(), 1))
         parts = []
         for n_rows in np.unique(counts):
             g_ = order[counts[order] == n_rows]
