@@ -639,7 +639,8 @@ def test_round_lenslets_are_a_cells_bench_setting():
                            ({"lenslet_aperture": "hex", "crosstalk": "cells"}, "lenslet_aperture"),
                            ({"lenslet_aperture": "round", "crosstalk": "cells", "centroid_window_px": 0}, "lenslet_aperture"),
                            ({"lenslet_aperture": "round", "crosstalk": "cells", "lenslet_diameter_mm": 140}, "lenslet_diameter_mm"),
-                           ({"lenslet_diameter_mm": float("nan")}, "lenslet_diameter_mm")):
+                           ({"lenslet_diameter_mm": float("nan")}, "lenslet_diameter_mm"),
+                           ({"lenslet_diameter_mm": -0.14}, "lenslet_diameter_mm")):
         with pytest.raises(lf.ConfigError, match=f"sensor.{field}"):
             b.replace(sensor=changes)
     r = b.replace(sensor={"lenslet_aperture": "round", "crosstalk": "cells"})

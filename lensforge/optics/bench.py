@@ -309,7 +309,7 @@ def _validate(obj, prefix: str = "") -> None:
                 f"sensor.pupil_radius_mm: ~{n_lenslets:.0f} lenslets cannot determine {n_modes} Zernike modes; "
                 "enlarge the pupil or lower zernike_order"
             )
-        if obj.lenslet_diameter_mm > obj.pitch_mm * (1 + 1e-12):
+        if obj.lenslet_aperture == "round" and obj.lenslet_diameter_mm > obj.pitch_mm * (1 + 1e-12):
             raise ConfigError(f"sensor.lenslet_diameter_mm: a round lenslet of {obj.lenslet_diameter_mm} mm does not fit "
                               f"its {obj.pitch_mm} mm pitch (give the diameter in mm, e.g. 0.140)")
         if obj.lenslet_aperture == "round" and obj.crosstalk != "cells":
