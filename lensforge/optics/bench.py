@@ -112,7 +112,7 @@ class Sensor:
     lenslet_aperture: 'square' (fully filled pitch x pitch cells, the default) or 'round' (discs of
     ``lenslet_diameter_mm`` with opaque gaps: a chrome-masked array such as the MLA150-5C, whose spec
     sheet, as cited in issue 21, gives 140 um lenslets at 150 um pitch). Only the 'cells' model renders
-    the shape (each disc as Gauss-Legendre rows with exact chords, ``centroid.disc_rows``; ~50x the
+    the shape (each disc as Gauss-Legendre rows with exact chords, ``centroid.disc_rows``; 30-50x the
     square cells' cost); the own-centroid and 'neighbours' models assume square cells, so a round bench
     needs ``crosstalk = 'cells'``.
     """
