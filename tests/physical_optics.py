@@ -120,6 +120,18 @@ def simulate_centroids(model: ForwardModel, pose, n_grid: int = 160, M: int = 24
     return disp / f, disp, res
 
 
+def disc_nodes(diameter: float, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nodes (dx, dy) and weights (n, n) mm of a disc about its centre: rows dy = r sin(theta) on Gauss-Legendre
+    nodes in theta (dy' = r cos(theta) dtheta), each row's chord by n Gauss-Legendre nodes. The rim is smooth in
+    theta (no strips, no mask), so the rule converges spectrally; no aperture moments."""
+    u, wu = np.polynomial.legendre.leggauss(n)
+    r, th = 0.5 * diameter, 0.5 * np.pi * u
+    half = r * np.cos(th)  # each row's half chord
+    dx = half[:, None] * u[None, :]
+    dy = np.broadcast_to((r * np.sin(th))[:, None], dx.shape)
+    return dx, dy, (half * r * np.cos(th) * 0.5 * np.pi * wu)[:, None] * wu[None, :]
+
+
 def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: float, ring: int = 4, n_nodes: int = 160,
                             sub: int = 4, diameter: float | None = None, lit=None) -> np.ndarray:
     """Centroids (n, 2) mm in the pixel windows starting at pixels ``windows`` (n, 2) of the lenslets at ``centres``
@@ -137,12 +149,9 @@ def block_fresnel_centroids(field, centres, windows, sensor, wavelength_nm: floa
     edge0 = float(sensor.camera_offset_px) * pix
     u, wu = np.polynomial.legendre.leggauss(n_nodes)
     t, wt = 0.5 * p * u, 0.5 * p * wu  # a square cell's nodes about its centre
-    if diameter is not None:  # a disc's: rows Y = r sin(theta) (dY = r cos(theta) dtheta), nodes across each chord
-        r = 0.5 * diameter
-        th = 0.5 * np.pi * u
-        dy, half = r * np.sin(th), r * np.cos(th)  # each row's offset and half chord
-        dxx = half[:, None] * u[None, :]  # (rows, n)
-        w_disc = (half * r * np.cos(th) * 0.5 * np.pi * wu)[:, None] * wu
+    if diameter is not None:
+        dxx, dyy, w_disc = disc_nodes(diameter, n_nodes)
+        dy = dyy[:, 0]
     out = []
     for c, st in zip(np.asarray(centres, float), np.asarray(windows, float)):
         xs = edge0 + (st[:, None] + (np.arange(W * sub) + 0.5)[None, :] / sub) * pix  # (2, S) sample coordinates

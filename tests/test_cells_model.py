@@ -12,6 +12,7 @@ import lensforge as lf
 from lensforge.optics import centroid
 from lensforge.optics.bench import Sensor
 from lensforge.optics.shack_hartmann import ForwardModel
+from physical_optics import disc_nodes
 
 
 def _gl(n):
@@ -46,18 +47,6 @@ def _window_centroid_of(U, st, sensor, sub, spot):
     return np.array([inten.sum(axis=0) @ pc[0], inten.sum(axis=1) @ pc[1]]) / inten.sum() - spot
 
 
-def _disc_nodes(diameter, n):
-    """Nodes (ux, uy) and weights (rows, n) mm over a disc: rows at y = r sin(theta), Gauss-Legendre in theta, each
-    row's chord by n Gauss-Legendre nodes (the direct integral's rule, no moments)."""
-    t, wt = _gl(n)
-    th, wth = np.pi * t, np.pi * wt
-    r = 0.5 * diameter
-    half = r * np.cos(th)
-    ux = 2 * half[:, None] * t[None, :]
-    uy = np.broadcast_to((r * np.sin(th))[:, None], ux.shape)
-    return ux, uy, (2 * half * r * np.cos(th) * wth)[:, None] * wt[None, :]
-
-
 def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes=120, diameter=None):
     """Window centroid of pupil lenslet i: every lit lenslet b of its block contributes the Fresnel integral of its
     own field, amplitude exp(ln_a_b + g_b . u / 2 + (h_bx u_x^2 + h_by u_y^2) / 4) and phase k (W_b + s_b . u + u K_b u / 2) over its square
@@ -73,7 +62,7 @@ def _brute_force_window(i, cells, centres, neighbours, sensor, wl_nm, sub, nodes
         ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
         ww = np.outer(w, w) * p * p
     else:  # a round lenslet: row y by row
-        ux, uy, ww = _disc_nodes(diameter, nodes)
+        ux, uy, ww = disc_nodes(diameter, nodes)
     for b in neighbours[i]:
         if b < 0:
             continue
@@ -175,12 +164,12 @@ def test_cells_kernel_complex_step_is_its_derivative(diameter):
 
 def _window_and_aperture_nodes(spot, sensor, sub, nodes, diameter=None):
     """(window's first pixels st, its camera samples X, Y, the aperture's Gauss-Legendre nodes ux, uy (mm from the
-    lenslet centre) and weights ww) of the brute-force integrals; diameter: a round lenslet's (``_disc_nodes``)."""
+    lenslet centre) and weights ww) of the brute-force integrals; diameter: a round lenslet's (``disc_nodes``)."""
     p = sensor.pitch_mm
     st, xs = _window_samples(spot, sensor, sub)
     X, Y = np.meshgrid(xs[0], xs[1], indexing="xy")
     if diameter is not None:
-        return st, X, Y, *(v.ravel() for v in _disc_nodes(diameter, nodes))
+        return st, X, Y, *(v.ravel() for v in disc_nodes(diameter, nodes))
     t, w = _gl(nodes)
     ux, uy = np.meshgrid(p * t, p * t, indexing="xy")
     return st, X, Y, ux.ravel(), uy.ravel(), np.outer(w, w).ravel() * p * p

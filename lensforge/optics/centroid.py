@@ -468,10 +468,15 @@ def disc_row_counts(sensor: Sensor, wavelength_nm: float, ring: int) -> np.ndarr
     a direct integral of random 4-ring blocks (tilts, curvatures, irradiance gradients) a uniform 104, 120, 128,
     144 rows read 0.58, 0.03, 2e-4, 2e-7 urad off, and 96 rows 136 urad (the far rows alias)."""
     p, f = sensor.pitch_mm, sensor.lenslet_focal_mm
-    b = np.hypot(*_neighbour_offsets(ring).T)
-    d = b * p + float(sensor.centroid_window_px) * sensor.pixel_mm / np.sqrt(2.0)
-    r_beta = 0.5 * sensor.lenslet_diameter_mm / p * 2 * np.pi * p * d / (wavelength_nm * 1e-6 * f)
-    return (8 * np.ceil((r_beta + 16.0) / 8.0)).astype(int)
+    d = np.hypot(*_neighbour_offsets(ring).T) * p + float(sensor.centroid_window_px) * sensor.pixel_mm / np.sqrt(2.0)
+    return _rows_needed(sensor, 2 * np.pi * p * d / (wavelength_nm * 1e-6 * f), 0.0)
+
+
+def _rows_needed(sensor: Sensor, beta: np.ndarray, alpha) -> np.ndarray:
+    """Rows r |beta| + r^2 |alpha| + 16, in eights, of sub-apertures whose light meets a window at |beta| at most,
+    alpha their curvature (r the disc's radius in pitches)."""
+    r = 0.5 * float(sensor.lenslet_diameter_mm) / float(sensor.pitch_mm)
+    return (8 * np.ceil((r * beta + r * r * alpha + 16.0) / 8.0)).astype(int)
 
 
 def _disc_row_counts_of(arg, alpha, sensor: Sensor) -> np.ndarray:
@@ -480,22 +485,17 @@ def _disc_row_counts_of(arg, alpha, sensor: Sensor) -> np.ndarray:
     kernel's own beta = 2 pi arg (m, B, S, 2), alpha (m, B, 1, 2) the sub-aperture's curvature: the spots' own
     offsets (a lens's slope differences across the block) take the light beyond the block geometry's angles
     (``disc_row_counts``, which sizes the passes)."""
-    r = 0.5 * float(sensor.lenslet_diameter_mm) / float(sensor.pitch_mm)
     b = 2 * np.pi * np.abs(np.real(arg)).max(axis=(0, 2))  # (B, 2)
-    a = np.abs(np.real(alpha)).max(axis=(0, 2)).max(axis=-1)  # (B,)
-    need = r * np.hypot(b[:, 0], b[:, 1]) + r * r * a
-    return (8 * np.ceil((need + 16.0) / 8.0)).astype(int)
+    return _rows_needed(sensor, np.hypot(b[:, 0], b[:, 1]), np.abs(np.real(alpha)).max(axis=(0, 2, 3)))
 
 
 def disc_rows(sensor: Sensor, n: int):
-    """None for square lenslets; for round ones (``sensor.lenslet_aperture``) the disc of ``lenslet_diameter_mm`` as
-    n rows across y (``disc_row_counts``), in pitches: (y_j, weights w_j, chords h_j) (n,) each, with int_disc g dA =
+    """A round lenslet (``sensor.lenslet_aperture``), the disc of ``lenslet_diameter_mm``, as n rows across y
+    (``disc_row_counts``), in pitches: (y_j, weights w_j, chords h_j) (n,) each, with int_disc g dA =
     sum_j w_j int_chord_j g(t_x, y_j) dt_x. The rows sit at y = r sin(theta) on Gauss-Legendre nodes in theta (dy =
     r cos(theta) dtheta): the rim is smooth in theta, so the rule converges spectrally, and each chord is integrated
     exactly (``aperture.square_aperture_moments`` scaled to it). No staircase: a disc cut into strips diffracted its
     steps into the far neighbours' windows (32 strips: 3 urad off a direct integral, session 50)."""
-    if sensor.lenslet_aperture != "round":
-        return None
     return _disc_rows(float(sensor.lenslet_diameter_mm) / float(sensor.pitch_mm), int(n))
 
 
@@ -518,8 +518,8 @@ def _disc_moments(beta, alpha, gam, dlt, a_xy, n_mom: int, rows):
     xr, xi = xr * hr, xi * hr
     amp = wb * np.exp(ax(gam, 1) * yb + ax(dlt, 1) * yb * yb)
     ph = ax(alpha, 1) * yb * yb - ax(beta, 1) * yb  # (m, B, N, S)
-    yr_ = (amp * np.cos(ph))[..., None] * yb[..., None] ** np.arange(n_mom + 1)
-    yi_ = (amp * np.sin(ph))[..., None] * yb[..., None] ** np.arange(n_mom + 1)
+    yp = yb[..., None] ** np.arange(n_mom + 1)  # (N, 1, n_mom + 1)
+    yr_, yi_ = (amp * np.cos(ph))[..., None] * yp, (amp * np.sin(ph))[..., None] * yp
     yr_, yi_ = (np.broadcast_to(v, xr.shape) for v in (yr_, yi_))
     return np.stack([xr, yr_], axis=-2), np.stack([xi, yi_], axis=-2)
 
@@ -542,13 +542,14 @@ def _window_centroid(spot: np.ndarray, block: dict, st: np.ndarray, sensor: Sens
     # K_xy's factor exp(i a t_x t_y) as sum_r (i a)^r / r! t_x^r t_y^r, terms zero beyond each sub-aperture's
     # own R: the result does not depend on which lenslets share a pass
     round_ = sensor.lenslet_aperture == "round"
-    if round_:  # a round sub-aperture's rows carry the cross term exactly, as their chords' tilts: no series
+    if round_:  # a round sub-aperture's rows carry the cross term exactly, as their chords' tilts: no series (its
+        # one term's weight pw, one per row, comes with the rows)
         assert per_cell, "round lenslets: the 'cells' blocks only"
-        R, pw, ir_re, ir_im = _series_weights(np.zeros((a_xy.shape[0], 1)), np.zeros((a_xy.shape[0], 1), int))
+        R, ir_re, ir_im = 0, np.ones(1), np.zeros(1)
     else:
         R, pw, ir_re, ir_im = _series_weights(a_xy, _xy_ranks(np.abs(np.real(a_xy))))
-    if not per_cell:
-        pw = pw[:, None, :]
+        if not per_cell:
+            pw = pw[:, None, :]
     xs = edge0 + (st[..., None, :] + offs[:, None]) * pix - spot[..., None, :]  # (m, S, 2) rel. own spot
     arg = p * (xs[..., None, :, :] - nb_pos[..., :, None, :]) / (lam * f)  # (m, B, S, 2)
     ramp = (-k * np.einsum("...bi,...si->...bsi", np.broadcast_to(pe, nb_pos.shape), xs) / f)[..., None]
